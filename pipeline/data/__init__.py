@@ -1,0 +1,1 @@
+"""Datasets: file formats, the synthetic generator, preprocessing into shards, datamodules."""

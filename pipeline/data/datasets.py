@@ -1,0 +1,90 @@
+"""Map-style dataset over the shards written by `preprocess` (see pipeline/data/preprocess.py)."""
+
+from __future__ import annotations
+
+import hashlib
+import json
+from pathlib import Path
+
+import numpy as np
+import torch
+from torch.utils.data import Dataset
+
+from pipeline.data import interiorverse as iv
+from pipeline.data.preprocess import SHARD_KEYS
+
+MAP_KEYS = ("im", "albedo", "normal", "depth", "material", "mask")
+
+
+def read_manifest(root: str | Path) -> dict:
+    path = Path(root) / "manifest.json"
+    if not path.is_file():
+        raise iv.DatasetError(f"{path}: no shard manifest; run the preprocess stage first")
+    try:
+        return json.loads(path.read_text())
+    except json.JSONDecodeError as exc:
+        raise iv.DatasetError(f"{path}: not valid JSON ({exc})") from exc
+
+
+class ShardDataset(Dataset):
+    """Views of one split, held in memory. Item: dict of float tensors im/albedo/normal (3,H,W),
+    depth (1,H,W) metres (0 = invalid), material (2,H,W) roughness+metallic, mask (1,H,W) bool,
+    fov_x_deg scalar, `id` "<scene>/<view>", and `light` (dict of tensors per view) when present."""
+
+    def __init__(self, root: str | Path, split: str, verify: bool = True, lighting: bool = True):
+        if split not in iv.SPLITS:
+            raise ValueError(f"split={split!r}: choose one of {iv.SPLITS}")
+        self.root = Path(root)
+        manifest = read_manifest(self.root)
+        if split not in manifest["splits"]:
+            raise iv.DatasetError(f"{self.root / 'manifest.json'}: has no split {split!r}")
+        entry = manifest["splits"][split]
+        self.ids: list[str] = list(entry["views"])
+        self.height, self.width = manifest["height"], manifest["width"]
+        chunks: dict[str, list[np.ndarray]] = {k: [] for k in SHARD_KEYS}
+        self.light: list[dict | None] = []
+        for shard in entry["shards"]:
+            path = self.root / shard["file"]
+            if verify and hashlib.sha256(path.read_bytes()).hexdigest() != shard["sha256"]:
+                raise iv.DatasetError(f"{path}: checksum differs from manifest.json (stale or corrupt shard)")
+            with np.load(path) as z:
+                for k in SHARD_KEYS:
+                    chunks[k].append(z[k])
+                self.light.extend(_split_light(z, shard["count"]) if lighting and shard["lighting"] else [None] * shard["count"])
+        self.arrays = {k: np.concatenate(v) for k, v in chunks.items()}
+        if len(self.arrays["im"]) != len(self.ids):
+            raise iv.DatasetError(f"{self.root}: split {split!r} shards hold {len(self.arrays['im'])} views, manifest lists {len(self.ids)}")
+
+    def __len__(self) -> int:
+        return len(self.ids)
+
+    def __getitem__(self, i: int) -> dict:
+        item = {k: torch.from_numpy(np.array(self.arrays[k][i])) for k in MAP_KEYS}
+        item["mask"] = item["mask"].bool()
+        item["fov_x_deg"] = torch.tensor(float(self.arrays["fov_x_deg"][i]))
+        item["id"] = self.ids[i]
+        if self.light[i] is not None:
+            item["light"] = {k: torch.from_numpy(v) for k, v in self.light[i].items()}
+        return item
+
+
+def _split_light(z, count: int) -> list[dict]:
+    out = []
+    for v in range(count):
+        d = {}
+        for prefix in ("surf", "free"):
+            off = z[f"light_{prefix}_offsets"]
+            for key in iv.LIGHT_KEYS:
+                if key.startswith(prefix):
+                    d[key] = z[f"light_{key}"][off[v]:off[v + 1]]
+        out.append(d)
+    return out
+
+
+def collate_views(items: list[dict]) -> dict:
+    """Stack the fixed-size maps; keep ids and per-view lighting (variable probe counts) as lists."""
+    batch = {k: torch.stack([it[k] for it in items]) for k in (*MAP_KEYS, "fov_x_deg")}
+    batch["id"] = [it["id"] for it in items]
+    if all("light" in it for it in items):
+        batch["light"] = [it["light"] for it in items]
+    return batch

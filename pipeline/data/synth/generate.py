@@ -1,0 +1,158 @@
+"""The `synthesize` stage's work: render procedural rooms into an InteriorVerse-layout dataset.
+
+Scenes are independent, so they render in parallel worker processes (spawned: Mitsuba's variant is
+process-global), each scene deterministic in (seed, scene index).
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import shutil
+import time
+from concurrent.futures import ProcessPoolExecutor, as_completed
+from dataclasses import asdict, dataclass, field
+from multiprocessing import get_context
+from pathlib import Path
+
+import numpy as np
+from tqdm import tqdm
+
+from pipeline.data import interiorverse as iv
+from pipeline.data.synth import mitsuba_backend as mb
+from pipeline.data.synth.scene import RoomConfig, generate_room, propose_camera
+from pipeline.data.synth.views import LightingConfig, Timer, camera_is_usable, gbuffer, lighting_probes
+
+MARKER = ".invrender-synthesize"  # marks a folder this stage owns (and may therefore clear)
+
+
+@dataclass
+class SynthConfig:
+    scenes: int = 20
+    views: int = 5
+    width: int = 160
+    height: int = 120
+    spp: int = 64
+    max_depth: int = 8
+    half_float: bool = False
+    splits: dict = field(default_factory=lambda: {"train": 0.7, "val": 0.15, "test": 0.15})
+    variant: str = "auto"
+    workers: int = 0  # 0 = one per core
+    room: RoomConfig = field(default_factory=RoomConfig)
+    lighting: LightingConfig = field(default_factory=LightingConfig)
+
+    @staticmethod
+    def from_dict(d: dict) -> SynthConfig:
+        d = dict(d)
+        room = RoomConfig(**{k: tuple(v) if isinstance(v, list) else v for k, v in d.pop("room", {}).items()})
+        light = LightingConfig(**{k: tuple(v) if isinstance(v, list) else v for k, v in d.pop("lighting", {}).items()})
+        unknown = set(d) - set(SynthConfig.__dataclass_fields__)
+        if unknown:
+            raise ValueError(f"synth: unknown key(s) {sorted(unknown)}")
+        return SynthConfig(**d, room=room, lighting=light)
+
+
+def scene_name(index: int) -> str:
+    return f"scene_{index:04d}"
+
+
+def scene_seed(seed: int, index: int) -> int:
+    """Independent 31-bit seed per scene from the stage seed (numpy SeedSequence spawning)."""
+    return int(np.random.SeedSequence([int(seed), int(index)]).generate_state(1)[0] & 0x7FFFFFFF)
+
+
+def assign_splits(n: int, fractions: dict, seed: int) -> dict[str, list[str]]:
+    """Split scene names by scene (never by view): shuffled, val/test get round(f*n), at least one
+    each when n >= 3, the rest train."""
+    if n < 3:
+        raise ValueError(f"synth.scenes={n}: need at least 3 scenes for non-empty train/val/test splits")
+    names = [scene_name(i) for i in np.random.default_rng(seed).permutation(n)]
+    n_test = max(1, round(fractions["test"] * n))
+    n_val = max(1, round(fractions["val"] * n))
+    if n_test + n_val >= n:
+        raise ValueError(f"synth.splits={fractions}: leaves no training scene out of {n}")
+    return {"test": sorted(names[:n_test]), "val": sorted(names[n_test:n_test + n_val]),
+            "train": sorted(names[n_test + n_val:])}
+
+
+def render_scene(index: int, seed: int, cfg: SynthConfig, out: str, variant: str, threads: int) -> dict:
+    """Generate, render and write one scene (runs in a worker process). Returns per-scene statistics."""
+    mb.init_mitsuba(variant, threads)
+    timer = Timer()
+    s_seed = scene_seed(seed, index)
+    with timer("build"):
+        room, footprints, rng = generate_room(s_seed, cfg.views, cfg.room)
+        scene = mb.load_scene(room, cfg.max_depth)
+    name = scene_name(index)
+    redraws = 0
+    for v, cam in enumerate(room.cameras):
+        with timer("camera"):
+            for _ in range(20):
+                if camera_is_usable(scene, cam):
+                    break
+                cam = propose_camera(room, rng, cfg.room, footprints)
+                redraws += 1
+        room.cameras[v] = cam
+    cameras, valid_fraction, n_surf, n_free = {}, [], 0, 0
+    for v, cam in enumerate(room.cameras):
+        view = f"{v:03d}"
+        with timer("gbuffer"):
+            gb = gbuffer(scene, cam, cfg.width, cfg.height)
+        with timer("render"):
+            im = mb.render_view(scene, cam, cfg.width, cfg.height, cfg.spp, seed=s_seed * 64 + v)
+        with timer("lighting"):
+            light = lighting_probes(scene, cam, gb, cfg.lighting, rng, seed=s_seed * 64 + v)
+        with timer("write"):
+            iv.write_view(out, name, view, {"im": im, **gb}, half=cfg.half_float)
+            iv.write_light(out, name, view, light)
+        cameras[view] = {"fov_x_deg": cam.fov_x_deg, "width": cfg.width, "height": cfg.height,
+                         **mb.intrinsics(cam.fov_x_deg, cfg.width, cfg.height),
+                         "world_from_view": mb.world_from_view(cam).tolist()}
+        valid_fraction.append(float(gb["mask"].mean()))
+        n_surf += len(light["surf_position"])
+        n_free += len(light["free_position"])
+    (Path(out) / name / "cameras.json").write_text(json.dumps(cameras, indent=1))
+    (Path(out) / name / "scene.json").write_text(json.dumps(room.to_json()))
+    return {"scene": name, "seconds": timer.seconds, "redraws": redraws, "valid_fraction": valid_fraction,
+            "surface_probes": n_surf, "free_probes": n_free, "shapes": len(room.shapes),
+            "windows": len(room.windows), "lamps": sum(s.role == "lamp" for s in room.shapes)}
+
+
+def prepare_output(out: Path) -> None:
+    """Start from an empty output folder. A non-empty folder is cleared only if this stage made it."""
+    if out.exists() and any(out.iterdir()):
+        if not (out / MARKER).exists():
+            raise FileExistsError(f"{out}: exists, is not empty and was not written by `synthesize`; refusing to clear it")
+        shutil.rmtree(out)
+    out.mkdir(parents=True, exist_ok=True)
+    (out / MARKER).write_text("written by the synthesize stage; cleared on every run\n")
+
+
+def synthesize(cfg: SynthConfig, out: str | Path, seed: int, progress: bool = True) -> dict:
+    """Render `cfg.scenes` rooms into `out` (InteriorVerse layout + lighting + splits).
+
+    Returns a summary: counts, the Mitsuba variant, timings (seconds) and per-scene statistics.
+    """
+    out = Path(out)
+    splits = assign_splits(cfg.scenes, cfg.splits, seed)
+    prepare_output(out)
+    variant = mb.choose_variant(cfg.variant)
+    cores = os.cpu_count() or 1
+    workers = max(1, min(cfg.workers or cores, cfg.scenes))
+    threads = max(1, cores // workers)
+    t0 = time.perf_counter()
+    results = []
+    bar = tqdm(total=cfg.scenes, desc=f"synthesize ({variant}, {workers} workers)", unit="scene", disable=not progress)
+    with ProcessPoolExecutor(workers, mp_context=get_context("spawn")) as pool:
+        futures = [pool.submit(render_scene, i, seed, cfg, str(out), variant, threads) for i in range(cfg.scenes)]
+        for fut in as_completed(futures):
+            results.append(fut.result())
+            bar.update(1)
+    bar.close()
+    wall = time.perf_counter() - t0
+    iv.write_splits(out, splits)
+    results.sort(key=lambda r: r["scene"])
+    summary = {"variant": variant, "workers": workers, "wall_seconds": wall, "scenes": results,
+               "splits": {k: len(v) for k, v in splits.items()}, "config": asdict(cfg), "seed": seed}
+    (out / "dataset.json").write_text(json.dumps(summary, indent=1, default=list))
+    return summary

@@ -1,0 +1,134 @@
+"""Materials of the paper's GGX metallic workflow as plain data: base colour (albedo), roughness, metallic.
+
+A material is either uniform or textured. Textures are procedural 2-D patterns with a few discrete
+levels (checker tiles, wood planks, stripes, blotches) that mix two colours and, optionally, two
+roughness values; the renderer looks them up with nearest filtering, so every rendered ground-truth
+value is exactly one texel of the pattern (which the tests rely on).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+TEXTURE_RESOLUTION = 64
+PATTERNS = ("checker", "planks", "stripes", "blotches")
+
+
+@dataclass
+class Material:
+    """GGX metallic-workflow parameters. `texture` (optional) is a pattern spec, see `pattern_levels`."""
+
+    role: str
+    albedo: list[float]  # base colour, linear RGB in [0, 1]
+    roughness: float  # GGX roughness (alpha = roughness^2)
+    metallic: float
+    texture: dict | None = None  # {"pattern", "repeat", "seed", "albedo2", "roughness2"}
+
+    def albedo_map(self) -> np.ndarray | None:
+        """(T, T, 3) float32 base-colour texture, or None for a uniform material."""
+        if self.texture is None:
+            return None
+        t = pattern_levels(self.texture)[..., None]
+        return ((1 - t) * np.asarray(self.albedo) + t * np.asarray(self.texture["albedo2"])).astype(np.float32)
+
+    def roughness_map(self) -> np.ndarray | None:
+        """(T, T) float32 roughness texture, or None when roughness is uniform."""
+        if self.texture is None or self.texture.get("roughness2") is None:
+            return None
+        t = pattern_levels(self.texture)
+        return ((1 - t) * self.roughness + t * self.texture["roughness2"]).astype(np.float32)
+
+
+def pattern_levels(spec: dict) -> np.ndarray:
+    """(T, T) float array of mixing levels in [0, 1] for a pattern spec (deterministic in spec['seed'])."""
+    n = TEXTURE_RESOLUTION
+    rep = int(spec["repeat"])
+    rng = np.random.default_rng(int(spec["seed"]))
+    i, j = np.meshgrid(np.arange(n), np.arange(n), indexing="ij")
+    cell = max(n // rep, 1)
+    kind = spec["pattern"]
+    if kind == "checker":
+        return (((i // cell) + (j // cell)) % 2).astype(np.float64)
+    if kind == "planks":
+        # rows of planks with staggered joints; each plank one of 4 shades
+        row = i // cell
+        shift = (row * 7) % 3 * cell
+        plank = (j + shift) // (2 * cell)
+        shades = rng.integers(0, 4, size=(rep + 1, n))
+        out = shades[np.minimum(row, rep), plank % n] / 3.0
+        out[(i % cell) == 0] = 1.0  # dark seam between rows
+        return out
+    if kind == "stripes":
+        return (((j // max(cell // 2, 1)) % 3) / 2.0).astype(np.float64)
+    if kind == "blotches":
+        coarse = rng.integers(0, 4, size=(rep, rep)) / 3.0
+        return coarse[np.minimum(i // cell, rep - 1), np.minimum(j // cell, rep - 1)]
+    raise ValueError(f"unknown texture pattern {kind!r} (choose from {PATTERNS})")
+
+
+def _hsv_colour(rng, hue, sat, val) -> list[float]:
+    """A linear RGB colour from hue/saturation/value ranges (value is the linear max channel)."""
+    h, s, v = rng.uniform(*hue) % 1.0, rng.uniform(*sat), rng.uniform(*val)
+    k = (np.array([5.0, 3.0, 1.0]) + h * 6) % 6
+    rgb = v - v * s * np.clip(np.minimum(k, 4 - k), 0, 1)
+    return np.clip(rgb, 0.0, 1.0).tolist()
+
+
+def _texture(rng, albedo2, roughness2=None, patterns=PATTERNS) -> dict:
+    return {
+        "pattern": str(rng.choice(patterns)),
+        "repeat": int(rng.choice([2, 4, 8])),
+        "seed": int(rng.integers(2**31)),
+        "albedo2": albedo2,
+        "roughness2": roughness2,
+    }
+
+
+def random_material(rng: np.random.Generator, role: str) -> Material:
+    """Draw a material for a surface role: floor, wall, ceiling, furniture, object, mirror, lamp.
+
+    The mix covers mirror-like to matte roughness, metallic 0, 1 and in between, and textured albedo.
+    """
+    u = rng.uniform()
+    if role == "floor":
+        base = _hsv_colour(rng, (0.05, 0.12), (0.3, 0.7), (0.15, 0.6))
+        rough = float(rng.uniform(0.05, 0.5))  # glossy floors are common indoors
+        if u < 0.65:
+            other = _hsv_colour(rng, (0.0, 0.15), (0.2, 0.6), (0.05, 0.5))
+            rough2 = float(rng.uniform(0.4, 0.9)) if rng.uniform() < 0.4 else None
+            return Material(role, base, rough, 0.0, _texture(rng, other, rough2, ("checker", "planks")))
+        return Material(role, base, rough, 0.0)
+    if role == "wall":
+        base = _hsv_colour(rng, (0.0, 1.0), (0.0, 0.35), (0.35, 0.85))
+        if u < 0.2:
+            other = _hsv_colour(rng, (0.0, 1.0), (0.0, 0.4), (0.3, 0.8))
+            return Material(role, base, float(rng.uniform(0.6, 1.0)), 0.0, _texture(rng, other, None, ("stripes",)))
+        return Material(role, base, float(rng.uniform(0.5, 1.0)), 0.0)
+    if role == "ceiling":
+        return Material(role, [float(rng.uniform(0.7, 0.9))] * 3, float(rng.uniform(0.7, 1.0)), 0.0)
+    if role == "mirror":
+        return Material(role, [float(rng.uniform(0.88, 0.96))] * 3, 0.02, 1.0)
+    if role == "lamp":
+        return Material(role, [0.9, 0.9, 0.9], 0.5, 0.0)
+    if role == "furniture":
+        if u < 0.3:  # wood
+            base = _hsv_colour(rng, (0.05, 0.1), (0.4, 0.8), (0.1, 0.5))
+            other = _hsv_colour(rng, (0.04, 0.1), (0.4, 0.8), (0.05, 0.35))
+            return Material(role, base, float(rng.uniform(0.3, 0.7)), 0.0, _texture(rng, other, None, ("planks", "stripes")))
+        if u < 0.5:  # metal
+            return Material(role, _hsv_colour(rng, (0.0, 0.15), (0.0, 0.5), (0.5, 0.95)),
+                            float(rng.uniform(0.05, 0.5)), 1.0)
+        if u < 0.65:  # glossy plastic / lacquer
+            return Material(role, _hsv_colour(rng, (0.0, 1.0), (0.3, 0.9), (0.1, 0.8)), float(rng.uniform(0.05, 0.2)), 0.0)
+        if u < 0.8:  # fabric, patterned
+            base = _hsv_colour(rng, (0.0, 1.0), (0.2, 0.8), (0.1, 0.7))
+            other = _hsv_colour(rng, (0.0, 1.0), (0.2, 0.8), (0.1, 0.7))
+            return Material(role, base, float(rng.uniform(0.85, 1.0)), 0.0, _texture(rng, other, None, ("checker", "blotches")))
+        return Material(role, _hsv_colour(rng, (0.0, 1.0), (0.0, 0.8), (0.05, 0.9)), float(rng.uniform(0.2, 1.0)), 0.0)
+    if role == "object":
+        metallic = float(rng.choice([0.0, 1.0, rng.uniform(0.0, 1.0)], p=[0.45, 0.35, 0.2]))
+        rough = float(np.exp(rng.uniform(np.log(0.02), np.log(1.0))))  # log-uniform: many glossy ones
+        return Material(role, _hsv_colour(rng, (0.0, 1.0), (0.0, 0.9), (0.05, 0.95)), rough, metallic)
+    raise ValueError(f"unknown material role {role!r}")

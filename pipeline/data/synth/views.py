@@ -1,0 +1,160 @@
+"""One view of a generated room: ground-truth maps at pixel centres, the beauty image, lighting probes.
+
+All outputs follow DESIGN.md section 3/4: view space is OpenGL (x right, y up, camera looks down -z),
+depth is z-depth in millimetres (inf on misses), normals are unit view-space vectors.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from dataclasses import dataclass
+
+import numpy as np
+
+from pipeline.data.synth import mitsuba_backend as mb
+from pipeline.data.synth.scene import Camera
+
+PROBE_OFFSET_M = 2e-3  # probe rays start this far along the normal, clear of the surface they sit on
+
+
+@dataclass
+class LightingConfig:
+    """Lighting ground truth per view (our extension, see docs/data.md)."""
+
+    surface_stride: int = 20  # a surface probe every `stride` pixels (grid centred in the image)
+    hemi_size: tuple[int, int] = (8, 16)  # (theta rows over [0, pi/2], phi columns over [0, 2 pi))
+    free_points: int = 4
+    sphere_size: tuple[int, int] = (16, 32)  # (theta rows over [0, pi], phi columns)
+    spp: int = 32
+
+
+def gbuffer(scene, camera: Camera, width: int, height: int) -> dict[str, np.ndarray]:
+    """InteriorVerse maps from one exact ray per pixel centre.
+
+    Returns im-free maps: albedo (H,W,3), normal (H,W,3) view space, depth (H,W) mm (inf on misses, finite on
+    lamps), material (H,W,2), mask (H,W) (hit and not a lamp), plus `t` (H,W) ray length in metres.
+    """
+    w2v = mb.world_from_view(camera)
+    dirs_view = mb.view_rays(camera.fov_x_deg, width, height)
+    dirs = dirs_view @ w2v[:3, :3].T
+    hit = mb.intersect(scene, np.broadcast_to(w2v[:3, 3], dirs.shape), dirs)
+    z = hit["t"] * -dirs_view[:, 2]  # z-depth = ray length x cos(angle to the optical axis)
+    normal = hit["normal"] @ w2v[:3, :3]  # world -> view: rows of the rotation's transpose
+    normal[~hit["hit"]] = 0.0
+    mask = hit["hit"] & ~hit["lamp"]
+    shape = (height, width)
+    return {
+        "albedo": hit["albedo"].reshape(*shape, 3),
+        "normal": normal.reshape(*shape, 3).astype(np.float32),
+        "depth": np.where(hit["hit"], z * 1000.0, np.inf).reshape(shape).astype(np.float32),
+        "material": np.stack([hit["roughness"], hit["metallic"]], -1).reshape(*shape, 2),
+        "mask": mask.reshape(shape).astype(np.float32),
+        "t": hit["t"].reshape(shape),
+    }
+
+
+def orthonormal_basis(n: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Tangent and bitangent (N, 3) completing unit normals n (N, 3) to right-handed frames, continuous
+    everywhere except where n_z changes sign (the construction divides by 1 + |n_z|, never by ~0)."""
+    sign = np.where(n[:, 2] >= 0, 1.0, -1.0)
+    a = -1.0 / (sign + n[:, 2])
+    b = n[:, 0] * n[:, 1] * a
+    t = np.stack([1 + sign * n[:, 0] ** 2 * a, sign * b, -sign * n[:, 0]], -1)
+    bt = np.stack([b, sign + n[:, 1] ** 2 * a, -n[:, 1]], -1)
+    return t, bt
+
+
+def hemisphere_directions(normals: np.ndarray, rows: int, cols: int) -> np.ndarray:
+    """(P, rows, cols, 3) directions at texel centres: theta = (a+.5)/rows * pi/2 from the normal,
+    phi = (b+.5)/cols * 2 pi from the tangent towards the bitangent of `orthonormal_basis`."""
+    t, bt = orthonormal_basis(normals)
+    theta = (np.arange(rows) + 0.5) / rows * (math.pi / 2)
+    phi = (np.arange(cols) + 0.5) / cols * (2 * math.pi)
+    st, ct = np.sin(theta)[:, None, None], np.cos(theta)[:, None, None]
+    sp, cp = np.sin(phi)[None, :, None], np.cos(phi)[None, :, None]
+    local = [st * cp, st * sp, ct * np.ones_like(cp)]  # each (rows, cols, 1)
+    return local[0][None] * t[:, None, None] + local[1][None] * bt[:, None, None] + local[2][None] * normals[:, None, None]
+
+
+def sphere_directions(rows: int, cols: int) -> np.ndarray:
+    """(rows, cols, 3) view-space directions: theta from +y (up), phi from -z (forward) towards +x."""
+    theta = (np.arange(rows) + 0.5) / rows * math.pi
+    phi = (np.arange(cols) + 0.5) / cols * (2 * math.pi)
+    th, ph = np.meshgrid(theta, phi, indexing="ij")
+    return np.stack([np.sin(th) * np.sin(ph), np.cos(th), -np.sin(th) * np.cos(ph)], -1)
+
+
+def lighting_probes(scene, camera: Camera, gb: dict, cfg: LightingConfig, rng: np.random.Generator,
+                    seed: int) -> dict[str, np.ndarray]:
+    """Incident radiance maps: hemispheres at a grid of valid surface pixels and full spheres at free
+    points (between the camera and a visible surface, hence never inside furniture). Positions, normals
+    and directions in view space; radiance is L_i(p, w) arriving at p from w (the ray p + t w)."""
+    height, width = gb["mask"].shape
+    w2v = mb.world_from_view(camera)
+    rot, origin = w2v[:3, :3], w2v[:3, 3]
+    s = cfg.surface_stride
+    rows, cols = np.meshgrid(np.arange(s // 2, height, s), np.arange(s // 2, width, s), indexing="ij")
+    rows, cols = rows.ravel(), cols.ravel()
+    keep = gb["mask"][rows, cols] > 0
+    pix = np.stack([rows[keep], cols[keep]], -1)
+    dirs_view = mb.view_rays(camera.fov_x_deg, width, height).reshape(height, width, 3)
+    t = gb["t"][pix[:, 0], pix[:, 1]]
+    surf_pos = dirs_view[pix[:, 0], pix[:, 1]] * t[:, None]
+    surf_n = gb["normal"][pix[:, 0], pix[:, 1]].astype(np.float64)
+    surf_n /= np.linalg.norm(surf_n, axis=-1, keepdims=True)
+    hemi = hemisphere_directions(surf_n, *cfg.hemi_size)
+
+    # free points: a random fraction of the way to a random visible surface, >= 0.1 m in front of it
+    valid = np.flatnonzero((gb["mask"] > 0).ravel() & (gb["t"].ravel() > 0.5))
+    picks = rng.choice(valid, size=min(cfg.free_points, len(valid)), replace=False) if len(valid) else np.zeros(0, int)
+    frac = rng.uniform(0.25, 0.75, size=len(picks))
+    dist = np.minimum(frac * gb["t"].ravel()[picks], gb["t"].ravel()[picks] - 0.1)
+    free_pos = dirs_view.reshape(-1, 3)[picks] * dist[:, None]
+    sphere = np.broadcast_to(sphere_directions(*cfg.sphere_size), (len(picks), *cfg.sphere_size, 3))
+
+    def query(pos_view, dirs_view_, offset_normals, key):
+        n_dir = dirs_view_.shape[1] * dirs_view_.shape[2]
+        o_view = pos_view + (offset_normals * PROBE_OFFSET_M if offset_normals is not None else 0.0)
+        o = np.repeat(o_view @ rot.T + origin, n_dir, axis=0)
+        d = dirs_view_.reshape(-1, 3) @ rot.T
+        mean, se = mb.radiance(scene, o, d, cfg.spp, seed=seed * 2 + key)
+        shape = (*dirs_view_.shape[:3], 3)
+        return mean.reshape(shape).astype(np.float32), se.reshape(shape).astype(np.float32)
+
+    surf_L, surf_se = query(surf_pos, hemi, surf_n, 0)
+    free_L, free_se = query(free_pos, sphere, None, 1)
+    return {
+        "surf_pixel": pix.astype(np.int32), "surf_position": surf_pos.astype(np.float32),
+        "surf_normal": surf_n.astype(np.float32), "surf_directions": hemi.astype(np.float32),
+        "surf_radiance": surf_L, "surf_stderr": surf_se,
+        "free_position": free_pos.astype(np.float32), "free_directions": np.array(sphere, np.float32),
+        "free_radiance": free_L, "free_stderr": free_se,
+        "probe_offset_m": np.float32(PROBE_OFFSET_M), "spp": np.int32(cfg.spp),
+    }
+
+
+def camera_is_usable(scene, camera: Camera, min_valid: float = 0.6, min_median_depth_m: float = 1.0) -> bool:
+    """Cheap 16x12-ray check that a proposed view sees mostly valid surfaces and not a wall at arm's length."""
+    gb = gbuffer(scene, camera, 16, 12)
+    valid = gb["mask"] > 0
+    return bool(valid.mean() >= min_valid and np.median(gb["depth"][valid]) / 1000.0 >= min_median_depth_m)
+
+
+class Timer:
+    """Accumulates wall seconds per named phase."""
+
+    def __init__(self):
+        self.seconds: dict[str, float] = {}
+
+    def __call__(self, name: str):
+        timer = self
+
+        class _Span:
+            def __enter__(self):
+                self.t0 = time.perf_counter()
+
+            def __exit__(self, *exc):
+                timer.seconds[name] = timer.seconds.get(name, 0.0) + time.perf_counter() - self.t0
+
+        return _Span()

@@ -1,0 +1,6 @@
+"""Experiment tracking: MLflow runs per stage execution and DVC metrics files."""
+
+from pipeline.tracking.metrics_file import write_metrics
+from pipeline.tracking.mlflow_run import project_root, stage_run, tracking_uri
+
+__all__ = ["project_root", "stage_run", "tracking_uri", "write_metrics"]
