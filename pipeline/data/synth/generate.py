@@ -32,8 +32,8 @@ class SynthConfig:
     views: int = 5
     width: int = 160
     height: int = 120
-    spp: int = 64
-    max_depth: int = 8
+    spp: int = 32
+    max_depth: int = 6
     half_float: bool = False
     splits: dict = field(default_factory=lambda: {"train": 0.7, "val": 0.15, "test": 0.15})
     variant: str = "auto"
@@ -143,7 +143,7 @@ def synthesize(cfg: SynthConfig, out: str | Path, seed: int, progress: bool = Tr
     t0 = time.perf_counter()
     results = []
     bar = tqdm(total=cfg.scenes, desc=f"synthesize ({variant}, {workers} workers)", unit="scene", disable=not progress)
-    with ProcessPoolExecutor(workers, mp_context=get_context("spawn")) as pool:
+    with ProcessPoolExecutor(workers, mp_context=get_context("spawn")) as pool:  # variant is per process
         futures = [pool.submit(render_scene, i, seed, cfg, str(out), variant, threads) for i in range(cfg.scenes)]
         for fut in as_completed(futures):
             results.append(fut.result())

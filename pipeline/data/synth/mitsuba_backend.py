@@ -159,7 +159,11 @@ def scene_dict(room: Room, max_depth: int = 8) -> dict:
 def load_scene(room: Room, max_depth: int = 8):
     import mitsuba as mi
 
-    return mi.load_dict(scene_dict(room, max_depth))
+    # Both flags keep the emitter order fixed: parallel loading registers objects in thread-timing order
+    # and the optimiser's shape merging reorders shapes (and so their area lights) from run to run. The
+    # emitter order decides which random numbers pick which light, so either would break "same seed,
+    # same pixels" across processes.
+    return mi.load_dict(scene_dict(room, max_depth), parallel=False, optimize=False)
 
 
 def render_view(scene, camera: Camera, width: int, height: int, spp: int, seed: int) -> np.ndarray:

@@ -1,0 +1,69 @@
+"""Shared fixtures: Hydra Compose API, one MLflow sqlite store per test session, one micro dataset."""
+
+from __future__ import annotations
+
+import json
+import os
+import shutil
+from pathlib import Path
+
+import pytest
+from filelock import FileLock
+from hydra import compose, initialize_config_dir
+
+ROOT = Path(__file__).resolve().parents[1]
+CONF = ROOT / "conf"
+LLVM = "/usr/lib/x86_64-linux-gnu/libLLVM.so.19.1"
+
+
+def compose_cfg(name: str, overrides: list[str] | None = None):
+    """Compose `conf/<name>.yaml` with overrides (Hydra Compose API, no working-dir change)."""
+    with initialize_config_dir(config_dir=str(CONF), version_base="1.3"):
+        return compose(config_name=name, overrides=list(overrides or []))
+
+
+@pytest.fixture(scope="session", autouse=True)
+def _environment(tmp_path_factory):
+    """Isolate MLflow (one sqlite DB per session: creating one costs seconds) and pin libLLVM 19."""
+    if os.path.exists(LLVM):
+        os.environ.setdefault("DRJIT_LIBLLVM_PATH", LLVM)
+    db = tmp_path_factory.mktemp("mlflow") / "mlflow.db"
+    os.environ["MLFLOW_TRACKING_URI"] = f"sqlite:///{db}"
+    os.environ["DVC_NO_ANALYTICS"] = "1"
+    yield
+
+
+@pytest.fixture(scope="session")
+def micro_stage_paths(tmp_path_factory, worker_id):
+    """Output/report roots of one `synthesize` run on the micro profile, shared by all xdist workers."""
+    shared = tmp_path_factory.getbasetemp().parent if worker_id != "master" else tmp_path_factory.getbasetemp()
+    base = shared / "micro_synth"
+    with FileLock(str(shared / "micro_synth.lock")):
+        done = base / "done.json"
+        if not done.exists():
+            if base.exists():
+                shutil.rmtree(base)
+            from stages import synthesize
+
+            cfg = compose_cfg("synthesize", ["profile=micro", f"paths.outputs={base}/outputs",
+                                             f"paths.reports={base}/reports", "progress=false"])
+            metrics = synthesize.run(cfg)
+            done.write_text(json.dumps(metrics))
+    return {"outputs": base / "outputs", "reports": base / "reports",
+            "metrics": json.loads((base / "done.json").read_text())}
+
+
+@pytest.fixture(scope="session")
+def micro_root(micro_stage_paths) -> Path:
+    """Read-only micro dataset root (InteriorVerse layout). Copy it before modifying anything."""
+    return micro_stage_paths["outputs"] / "synthesize"
+
+
+@pytest.fixture(scope="session")
+def mitsuba_variant():
+    """Set a Mitsuba variant in this test process (llvm when it works here, else scalar)."""
+    from pipeline.data.synth import mitsuba_backend as mb
+
+    variant = mb.choose_variant("auto")
+    mb.init_mitsuba(variant)
+    return variant
