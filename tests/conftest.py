@@ -22,21 +22,34 @@ def compose_cfg(name: str, overrides: list[str] | None = None):
         return compose(config_name=name, overrides=list(overrides or []))
 
 
+def _shared_dir(tmp_path_factory, worker_id) -> Path:
+    """A temp folder shared by all xdist workers of this session (the master's own when not distributed)."""
+    base = tmp_path_factory.getbasetemp()
+    return base.parent if worker_id != "master" else base
+
+
 @pytest.fixture(scope="session", autouse=True)
-def _environment(tmp_path_factory):
-    """Isolate MLflow (one sqlite DB per session: creating one costs seconds) and pin libLLVM 19."""
+def _environment(tmp_path_factory, worker_id):
+    """One MLflow sqlite store for the whole session (creating one costs seconds; the first worker
+    creates it under a lock), no analytics, libLLVM 19 for Mitsuba."""
     if os.path.exists(LLVM):
         os.environ.setdefault("DRJIT_LIBLLVM_PATH", LLVM)
-    db = tmp_path_factory.mktemp("mlflow") / "mlflow.db"
-    os.environ["MLFLOW_TRACKING_URI"] = f"sqlite:///{db}"
     os.environ["DVC_NO_ANALYTICS"] = "1"
+    shared = _shared_dir(tmp_path_factory, worker_id)
+    uri = f"sqlite:///{shared / 'mlflow.db'}"
+    with FileLock(str(shared / "mlflow.lock")):
+        import mlflow
+
+        mlflow.set_tracking_uri(uri)
+        mlflow.search_experiments()  # creates the schema once
+    os.environ["MLFLOW_TRACKING_URI"] = uri
     yield
 
 
 @pytest.fixture(scope="session")
 def micro_stage_paths(tmp_path_factory, worker_id):
     """Output/report roots of one `synthesize` run on the micro profile, shared by all xdist workers."""
-    shared = tmp_path_factory.getbasetemp().parent if worker_id != "master" else tmp_path_factory.getbasetemp()
+    shared = _shared_dir(tmp_path_factory, worker_id)
     base = shared / "micro_synth"
     with FileLock(str(shared / "micro_synth.lock")):
         done = base / "done.json"
