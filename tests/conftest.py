@@ -58,12 +58,17 @@ def micro_stage_paths(tmp_path_factory, worker_id):
                 shutil.rmtree(base)
             from stages import synthesize
 
-            cfg = compose_cfg("synthesize", ["profile=micro", f"paths.outputs={base}/outputs",
-                                             f"paths.reports={base}/reports", "progress=false"])
+            cfg = compose_cfg(
+                "synthesize",
+                ["profile=micro", f"paths.outputs={base}/outputs", f"paths.reports={base}/reports", "progress=false"],
+            )
             metrics = synthesize.run(cfg)
             done.write_text(json.dumps(metrics))
-    return {"outputs": base / "outputs", "reports": base / "reports",
-            "metrics": json.loads((base / "done.json").read_text())}
+    return {
+        "outputs": base / "outputs",
+        "reports": base / "reports",
+        "metrics": json.loads((base / "done.json").read_text()),
+    }
 
 
 @pytest.fixture(scope="session")

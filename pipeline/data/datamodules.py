@@ -14,8 +14,9 @@ from pipeline.data.datasets import ShardDataset, collate_views
 class InteriorVerseDataModule(L.LightningDataModule):
     """Loads `<root>/manifest.json` shards; the train loader shuffles with a seeded generator."""
 
-    def __init__(self, root: str | Path, batch_size: int = 8, num_workers: int = 0, seed: int = 0,
-                 lighting: bool = True):
+    def __init__(
+        self, root: str | Path, batch_size: int = 8, num_workers: int = 0, seed: int = 0, lighting: bool = True
+    ):
         super().__init__()
         self.root, self.batch_size, self.num_workers = Path(root), int(batch_size), int(num_workers)
         self.seed, self.lighting = int(seed), lighting
@@ -29,8 +30,14 @@ class InteriorVerseDataModule(L.LightningDataModule):
 
     def _loader(self, split: str, shuffle: bool) -> DataLoader:
         gen = torch.Generator().manual_seed(self.seed) if shuffle else None
-        return DataLoader(self.splits[split], batch_size=self.batch_size, shuffle=shuffle, generator=gen,
-                          num_workers=self.num_workers, collate_fn=collate_views)
+        return DataLoader(
+            self.splits[split],
+            batch_size=self.batch_size,
+            shuffle=shuffle,
+            generator=gen,
+            num_workers=self.num_workers,
+            collate_fn=collate_views,
+        )
 
     def train_dataloader(self) -> DataLoader:
         return self._loader("train", True)

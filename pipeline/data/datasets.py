@@ -50,10 +50,15 @@ class ShardDataset(Dataset):
             with np.load(path) as z:
                 for k in SHARD_KEYS:
                     chunks[k].append(z[k])
-                self.light.extend(_split_light(z, shard["count"]) if lighting and shard["lighting"] else [None] * shard["count"])
+                self.light.extend(
+                    _split_light(z, shard["count"]) if lighting and shard["lighting"] else [None] * shard["count"]
+                )
         self.arrays = {k: np.concatenate(v) for k, v in chunks.items()}
         if len(self.arrays["im"]) != len(self.ids):
-            raise iv.DatasetError(f"{self.root}: split {split!r} shards hold {len(self.arrays['im'])} views, manifest lists {len(self.ids)}")
+            raise iv.DatasetError(
+                f"{self.root}: split {split!r} shards hold {len(self.arrays['im'])} views, "
+                f"manifest lists {len(self.ids)}"
+            )
 
     def __len__(self) -> int:
         return len(self.ids)
@@ -76,7 +81,7 @@ def _split_light(z, count: int) -> list[dict]:
             off = z[f"light_{prefix}_offsets"]
             for key in iv.LIGHT_KEYS:
                 if key.startswith(prefix):
-                    d[key] = z[f"light_{key}"][off[v]:off[v + 1]]
+                    d[key] = z[f"light_{key}"][off[v] : off[v + 1]]
         out.append(d)
     return out
 

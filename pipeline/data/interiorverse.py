@@ -24,8 +24,16 @@ MAPS = ("im", "albedo", "normal", "depth", "material", "mask")
 SPLITS = ("train", "val", "test")
 CHANNELS = {"im": 3, "albedo": 3, "normal": 3, "depth": 1, "material": 2, "mask": 1}
 LIGHT_KEYS = {
-    "surf_pixel": 2, "surf_position": 2, "surf_normal": 2, "surf_directions": 4, "surf_radiance": 4,
-    "surf_stderr": 4, "free_position": 2, "free_directions": 4, "free_radiance": 4, "free_stderr": 4,
+    "surf_pixel": 2,
+    "surf_position": 2,
+    "surf_normal": 2,
+    "surf_directions": 4,
+    "surf_radiance": 4,
+    "surf_stderr": 4,
+    "free_position": 2,
+    "free_directions": 4,
+    "free_radiance": 4,
+    "free_stderr": 4,
 }
 
 
@@ -193,10 +201,16 @@ def read_view(root: str | Path, scene: str, view: str, max_inconsistent_fraction
     norm = np.linalg.norm(maps["normal"], axis=-1)
     with np.errstate(invalid="ignore"):
         bad = (
-            ~np.isfinite(depth) | (depth <= 0)
-            | ~np.isfinite(norm) | (np.abs(norm - 1) > 0.05)
-            | ~np.isfinite(maps["albedo"]).all(-1) | (maps["albedo"] < 0).any(-1) | (maps["albedo"] > 1.001).any(-1)
-            | ~np.isfinite(maps["material"]).all(-1) | (maps["material"] < 0).any(-1) | (maps["material"] > 1.001).any(-1)
+            ~np.isfinite(depth)
+            | (depth <= 0)
+            | ~np.isfinite(norm)
+            | (np.abs(norm - 1) > 0.05)
+            | ~np.isfinite(maps["albedo"]).all(-1)
+            | (maps["albedo"] < 0).any(-1)
+            | (maps["albedo"] > 1.001).any(-1)
+            | ~np.isfinite(maps["material"]).all(-1)
+            | (maps["material"] < 0).any(-1)
+            | (maps["material"] > 1.001).any(-1)
         ) & valid
     n_bad = int(bad.sum())
     if n_bad > max_inconsistent_fraction * valid.sum():

@@ -109,13 +109,24 @@ def _write_shard(path: Path, views: list[dict]) -> dict:
             counts = [len(light[f"{prefix}_position"]) for light in lights]
             arrays[f"light_{prefix}_offsets"] = np.concatenate([[0], np.cumsum(counts)]).astype(np.int64)
     np.savez(path, **arrays)
-    return {"file": path.name, "count": len(views), "sha256": _sha256(path),
-            "lighting": all(light is not None for light in lights)}
+    return {
+        "file": path.name,
+        "count": len(views),
+        "sha256": _sha256(path),
+        "lighting": all(light is not None for light in lights),
+    }
 
 
-def preprocess(root: str | Path, out: str | Path, height: int, width: int, shard_size: int = 64,
-               max_inconsistent_fraction: float = 0.01, default_fov_x_deg: float | None = None,
-               progress: bool = True) -> PreprocessResult:
+def preprocess(
+    root: str | Path,
+    out: str | Path,
+    height: int,
+    width: int,
+    shard_size: int = 64,
+    max_inconsistent_fraction: float = 0.01,
+    default_fov_x_deg: float | None = None,
+    progress: bool = True,
+) -> PreprocessResult:
     """Validate every view listed by the split files of `root`, resize to (height, width) and write
     `<out>/<split>_<k>.npz` shards and `<out>/manifest.json`. Returns the manifest and rejections."""
     t0 = time.perf_counter()
@@ -129,10 +140,20 @@ def preprocess(root: str | Path, out: str | Path, height: int, width: int, shard
     for stale in out.glob("*.npz"):
         stale.unlink()
     rejected: list[dict] = []
-    manifest: dict = {"source_root": str(root.resolve()), "height": height, "width": width,
-                      "depth_unit": "m", "layout": "channels-first (N, C, H, W)", "splits": {}}
-    jobs = [(split, scene, view) for split, scenes in splits.items() for scene in scenes
-            for view in iv.list_views(root, scene)]
+    manifest: dict = {
+        "source_root": str(root.resolve()),
+        "height": height,
+        "width": width,
+        "depth_unit": "m",
+        "layout": "channels-first (N, C, H, W)",
+        "splits": {},
+    }
+    jobs = [
+        (split, scene, view)
+        for split, scenes in splits.items()
+        for scene in scenes
+        for view in iv.list_views(root, scene)
+    ]
     bar = tqdm(jobs, desc="preprocess", unit="view", disable=not progress)
     done: dict[str, list[dict]] = {s: [] for s in iv.SPLITS}
     cameras_cache: dict[str, dict | None] = {}
@@ -154,12 +175,19 @@ def preprocess(root: str | Path, out: str | Path, height: int, width: int, shard
     for split in iv.SPLITS:
         views = done[split]
         if not views:
-            raise iv.DatasetError(f"{root / (split + '.txt')}: no valid view left in split {split!r} "
-                                  f"({sum(r['split'] == split for r in rejected)} rejected)")
-        shards = [_write_shard(out / f"{split}_{k:03d}.npz", views[s:s + shard_size])
-                  for k, s in enumerate(range(0, len(views), shard_size))]
-        manifest["splits"][split] = {"views": [v["id"] for v in views], "shards": shards,
-                                     "scenes": sorted({v["id"].split("/")[0] for v in views})}
+            raise iv.DatasetError(
+                f"{root / (split + '.txt')}: no valid view left in split {split!r} "
+                f"({sum(r['split'] == split for r in rejected)} rejected)"
+            )
+        shards = [
+            _write_shard(out / f"{split}_{k:03d}.npz", views[s : s + shard_size])
+            for k, s in enumerate(range(0, len(views), shard_size))
+        ]
+        manifest["splits"][split] = {
+            "views": [v["id"] for v in views],
+            "shards": shards,
+            "scenes": sorted({v["id"].split("/")[0] for v in views}),
+        }
     manifest["lighting"] = all(s["lighting"] for sp in manifest["splits"].values() for s in sp["shards"])
     manifest["rejected_views"] = len({(r["scene"], r["view"]) for r in rejected})
     manifest["fixed_pixels"] = fixed

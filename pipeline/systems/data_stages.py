@@ -21,7 +21,9 @@ def synthesize_metrics(summary: dict) -> dict[str, float]:
     scenes = summary["scenes"]
     views = sum(len(s["valid_fraction"]) for s in scenes)
     metrics = {
-        "scenes": len(scenes), "views": views, "wall_seconds": summary["wall_seconds"],
+        "scenes": len(scenes),
+        "views": views,
+        "wall_seconds": summary["wall_seconds"],
         "wall_seconds_per_view": summary["wall_seconds"] / max(views, 1),
         "camera_redraws": sum(s["redraws"] for s in scenes),
         "valid_pixel_fraction": float(np.mean([f for s in scenes for f in s["valid_fraction"]])),
@@ -45,7 +47,9 @@ def run_synthesize(cfg: DictConfig) -> dict[str, float]:
         summary = synthesize(synth_cfg, cfg.out_dir, int(cfg.seed), progress=bool(cfg.progress))
         metrics = synthesize_metrics(summary)
         mlflow.set_tag("mitsuba_variant", summary["variant"])
-        first_views = [(s, f"{v:03d}") for v in range(synth_cfg.views) for s in sorted(r["scene"] for r in summary["scenes"])]
+        first_views = [
+            (s, f"{v:03d}") for v in range(synth_cfg.views) for s in sorted(r["scene"] for r in summary["scenes"])
+        ]
         sheet = contact_sheet(cfg.out_dir, first_views[: int(cfg.contact_sheet_views)], report / "samples.png")
         write_metrics(report / "metrics.json", metrics)
         mlflow.log_metrics(metrics)
@@ -63,13 +67,22 @@ def run_preprocess(cfg: DictConfig) -> dict[str, float]:
     report = Path(cfg.report_dir)
     p = cfg.preprocess
     with stage_run("preprocess", cfg, tags={"data_source": source}):
-        result = preprocess(root, cfg.out_dir, int(p.height), int(p.width), int(p.shard_size),
-                            float(p.max_inconsistent_fraction), ivc.fov_x_deg, progress=bool(cfg.progress))
+        result = preprocess(
+            root,
+            cfg.out_dir,
+            int(p.height),
+            int(p.width),
+            int(p.shard_size),
+            float(p.max_inconsistent_fraction),
+            ivc.fov_x_deg,
+            progress=bool(cfg.progress),
+        )
         result.manifest["source"] = source
         (Path(cfg.out_dir) / "manifest.json").write_text(json.dumps(result.manifest, indent=1))
         report.mkdir(parents=True, exist_ok=True)
-        (report / "rejected.json").write_text(json.dumps({"source": source, "root": str(root),
-                                                          "rejected": result.rejected}, indent=1) + "\n")
+        (report / "rejected.json").write_text(
+            json.dumps({"source": source, "root": str(root), "rejected": result.rejected}, indent=1) + "\n"
+        )
         splits = result.manifest["splits"]
         metrics = {
             "views_kept": sum(len(s["views"]) for s in splits.values()),

@@ -24,7 +24,7 @@ def project_root(start: str | Path | None = None) -> Path:
     here = Path(start or os.getcwd()).resolve()
     parts = here.parts
     for i in range(len(parts) - 2):
-        if parts[i:i + 3] == (".dvc", "tmp", "exps"):
+        if parts[i : i + 3] == (".dvc", "tmp", "exps"):
             return Path(*parts[:i])
     for p in (here, *here.parents):
         if (p / "dvc.yaml").is_file():
@@ -40,7 +40,9 @@ def tracking_uri(uri: str | None = None) -> tuple[str, str]:
     if uri.startswith("sqlite:///") and not uri.startswith("sqlite:////"):
         uri = f"sqlite:///{(root / uri.removeprefix('sqlite:///')).resolve()}"
     if not uri.startswith(("sqlite:", "http:", "https:", "postgresql:", "mysql:")):
-        raise ValueError(f"tracking.uri={uri!r}: MLflow 3 needs a database or server URI (e.g. sqlite:////abs/mlflow.db)")
+        raise ValueError(
+            f"tracking.uri={uri!r}: MLflow 3 needs a database or server URI (e.g. sqlite:////abs/mlflow.db)"
+        )
     db_dir = Path(uri.removeprefix("sqlite:///")).parent if uri.startswith("sqlite:") else root
     return uri, (db_dir / "mlartifacts").as_uri()
 
@@ -51,8 +53,13 @@ def git_sha(root: Path) -> str:
         sha = out.stdout.strip()
         if not sha:
             return "unknown"
-        dirty = subprocess.run(["git", "status", "--porcelain", "--untracked-files=no"], cwd=root,
-                               capture_output=True, text=True, timeout=10).stdout.strip()
+        dirty = subprocess.run(
+            ["git", "status", "--porcelain", "--untracked-files=no"],
+            cwd=root,
+            capture_output=True,
+            text=True,
+            timeout=10,
+        ).stdout.strip()
         return sha + ("-dirty" if dirty else "")
     except (OSError, subprocess.SubprocessError):
         return "unknown"
@@ -83,8 +90,13 @@ def stage_run(stage: str, cfg: DictConfig, tags: dict[str, str] | None = None) -
         mlflow.create_experiment(name, artifact_location=artifacts)
     mlflow.set_experiment(name)
     profile = str(OmegaConf.select(cfg, "profile_name") or "unknown")
-    all_tags = {"stage": stage, "profile": profile, "git_sha": git_sha(project_root()),
-                "dvc_exp_name": os.environ.get("DVC_EXP_NAME", ""), **(tags or {})}
+    all_tags = {
+        "stage": stage,
+        "profile": profile,
+        "git_sha": git_sha(project_root()),
+        "dvc_exp_name": os.environ.get("DVC_EXP_NAME", ""),
+        **(tags or {}),
+    }
     resolved = OmegaConf.to_container(cfg, resolve=True)
     with mlflow.start_run(run_name=f"{stage}-{profile}", nested=mlflow.active_run() is not None, tags=all_tags) as run:
         mlflow.log_params(_flatten(resolved))

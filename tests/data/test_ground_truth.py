@@ -160,9 +160,15 @@ def test_camera_rays_match_mitsubas_sensor(mitsuba_variant):
 
     cam = Camera([0.3, 1.5, 1.0], [-1.0, 1.1, -2.0], 70.0)
     W, H = 40, 30
-    sensor = mi.load_dict({"type": "perspective", "fov": 70.0, "fov_axis": "x",
-                           "to_world": mi.ScalarTransform4f().look_at(origin=cam.origin, target=cam.target, up=[0, 1, 0]),
-                           "film": {"type": "hdrfilm", "width": W, "height": H}})
+    sensor = mi.load_dict(
+        {
+            "type": "perspective",
+            "fov": 70.0,
+            "fov_axis": "x",
+            "to_world": mi.ScalarTransform4f().look_at(origin=cam.origin, target=cam.target, up=[0, 1, 0]),
+            "film": {"type": "hdrfilm", "width": W, "height": H},
+        }
+    )
     ours = mb.view_rays(70.0, W, H).reshape(H, W, 3) @ mb.world_from_view(cam)[:3, :3].T
     for i, j in [(0, 0), (0, W - 1), (H - 1, 0), (H // 2, W // 3), (H - 1, W - 1)]:
         ray, _ = sensor.sample_ray(0.0, 0.5, mi.ScalarPoint2f((j + 0.5) / W, (i + 0.5) / H), mi.ScalarPoint2f(0.5, 0.5))
@@ -175,10 +181,14 @@ def _reference_radiance(origin, direction, spp, seeds, scene_dict):
 
     up = [0, 1, 0] if abs(direction[1]) < 0.9 else [1, 0, 0]
     sc = dict(scene_dict)
-    sc["sensor"] = {"type": "perspective", "fov": 1e-3, "near_clip": 1e-5,
-                    "to_world": mi.ScalarTransform4f().look_at(origin=origin.tolist(), target=(origin + direction).tolist(), up=up),
-                    "film": {"type": "hdrfilm", "width": 1, "height": 1, "rfilter": {"type": "box"}},
-                    "sampler": {"type": "independent", "sample_count": spp}}
+    sc["sensor"] = {
+        "type": "perspective",
+        "fov": 1e-3,
+        "near_clip": 1e-5,
+        "to_world": mi.ScalarTransform4f().look_at(origin=origin.tolist(), target=(origin + direction).tolist(), up=up),
+        "film": {"type": "hdrfilm", "width": 1, "height": 1, "rfilter": {"type": "box"}},
+        "sampler": {"type": "independent", "sample_count": spp},
+    }
     scene = mi.load_dict(sc)
     est = np.array([np.array(mi.render(scene, spp=spp, seed=s), float).reshape(-1)[:3] for s in seeds])
     return est.mean(0), est.std(0, ddof=1) / math.sqrt(len(seeds))
@@ -192,8 +202,14 @@ def test_lighting_texels_equal_independent_radiance_queries(mitsuba_variant):
     scene = mb.load_scene(room)
     cam = room.cameras[0]
     gb = gbuffer(scene, cam, 48, 36)
-    light = lighting_probes(scene, cam, gb, LightingConfig(surface_stride=12, hemi_size=(2, 4), free_points=2,
-                                                           sphere_size=(2, 4), spp=1024), np.random.default_rng(0), 5)
+    light = lighting_probes(
+        scene,
+        cam,
+        gb,
+        LightingConfig(surface_stride=12, hemi_size=(2, 4), free_points=2, sphere_size=(2, 4), spp=1024),
+        np.random.default_rng(0),
+        5,
+    )
     w2v = mb.world_from_view(cam)
     rng = np.random.default_rng(1)
     z = []
@@ -226,8 +242,14 @@ def test_splits_are_by_scene_and_cover_every_scene(micro_root):
 def test_same_seed_renders_identical_files(tmp_path, mitsuba_variant):
     """A scene is a pure function of (seed, index): rendering it again, after another scene was loaded in
     the same process, matches bit for bit (Mitsuba's loader must not reorder emitters)."""
-    cfg = SynthConfig(scenes=3, views=1, width=32, height=24, spp=4,
-                      lighting=LightingConfig(surface_stride=12, hemi_size=(2, 4), free_points=1, sphere_size=(2, 4), spp=2))
+    cfg = SynthConfig(
+        scenes=3,
+        views=1,
+        width=32,
+        height=24,
+        spp=4,
+        lighting=LightingConfig(surface_stride=12, hemi_size=(2, 4), free_points=1, sphere_size=(2, 4), spp=2),
+    )
     for out, index in (("a", 1), ("other", 2), ("b", 1)):
         (tmp_path / out).mkdir()
         render_scene(index, 11, cfg, str(tmp_path / out), mitsuba_variant, 2)
@@ -235,6 +257,9 @@ def test_same_seed_renders_identical_files(tmp_path, mitsuba_variant):
         a = iv.read_view(tmp_path / "a", "scene_0001", "000").maps[name]
         b = iv.read_view(tmp_path / "b", "scene_0001", "000").maps[name]
         np.testing.assert_array_equal(a, b, err_msg=name)
-    la, lb = iv.read_light(iv.light_path(tmp_path / "a", "scene_0001", "000")), iv.read_light(iv.light_path(tmp_path / "b", "scene_0001", "000"))
+    la, lb = (
+        iv.read_light(iv.light_path(tmp_path / "a", "scene_0001", "000")),
+        iv.read_light(iv.light_path(tmp_path / "b", "scene_0001", "000")),
+    )
     for k in la:
         np.testing.assert_array_equal(la[k], lb[k], err_msg=k)

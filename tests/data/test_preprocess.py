@@ -68,11 +68,17 @@ def test_preprocess_writes_loadable_shards(dataset_copy, tmp_path):
     assert len(manifest["splits"]["train"]["views"]) == 8 and len(manifest["splits"]["train"]["shards"]) == 3
     ds = ShardDataset(tmp_path / "shards", "train")
     item = ds[0]
-    assert item["im"].shape == (3, 24, 32) and item["depth"].shape == (1, 24, 32) and item["material"].shape == (2, 24, 32)
+    assert (
+        item["im"].shape == (3, 24, 32) and item["depth"].shape == (1, 24, 32) and item["material"].shape == (2, 24, 32)
+    )
     assert item["mask"].dtype.is_floating_point is False and item["mask"].any()
     assert (item["depth"][item["mask"]] > 0.3).all() and (item["depth"][~item["mask"]] == 0).all()
     light = item["light"]
-    assert light["surf_radiance"].ndim == 4 and (light["surf_pixel"][:, 0] < 24).all() and (light["surf_pixel"][:, 1] < 32).all()
+    assert (
+        light["surf_radiance"].ndim == 4
+        and (light["surf_pixel"][:, 0] < 24).all()
+        and (light["surf_pixel"][:, 1] < 32).all()
+    )
     batch = collate_views([ds[0], ds[1]])
     assert batch["im"].shape == (2, 3, 24, 32) and len(batch["light"]) == 2 and batch["id"][0] == item["id"]
     scenes = {s: set(manifest["splits"][s]["scenes"]) for s in iv.SPLITS}
@@ -97,9 +103,13 @@ def _damage(root):
     bad[3, 4, 1] = np.nan
     write_exr(iv.map_path(root, "extra_1", "001", "im"), bad)
     iv.light_path(root, "extra_2", "000").write_bytes(b"PK\x03\x04 truncated zip")
-    return {("extra_0", "000"): "cannot decode", ("extra_0", "001"): "file not found",
-            ("extra_1", "000"): "1 channel(s), expected 3", ("extra_1", "001"): "NaN/inf",
-            ("extra_2", "000"): "cannot read lighting file"}
+    return {
+        ("extra_0", "000"): "cannot decode",
+        ("extra_0", "001"): "file not found",
+        ("extra_1", "000"): "1 channel(s), expected 3",
+        ("extra_1", "001"): "NaN/inf",
+        ("extra_2", "000"): "cannot read lighting file",
+    }
 
 
 def test_bad_views_are_rejected_with_file_and_reason(dataset_copy, tmp_path):
@@ -122,12 +132,15 @@ def test_bad_views_are_rejected_with_file_and_reason(dataset_copy, tmp_path):
     assert "extra_2/001" in res.manifest["splits"]["train"]["views"]
 
 
-@pytest.mark.parametrize("problem, match", [
-    ("empty", "test.txt: split file lists no scenes"),
-    ("missing", "val.txt: split file not found"),
-    ("twice", "listed in both"),
-    ("no_folder", "scene folder listed in a split file does not exist"),
-])
+@pytest.mark.parametrize(
+    "problem, match",
+    [
+        ("empty", "test.txt: split file lists no scenes"),
+        ("missing", "val.txt: split file not found"),
+        ("twice", "listed in both"),
+        ("no_folder", "scene folder listed in a split file does not exist"),
+    ],
+)
 def test_bad_split_files_raise_naming_the_file(dataset_copy, tmp_path, problem, match):
     if problem == "empty":
         (dataset_copy / "test.txt").write_text("\n")

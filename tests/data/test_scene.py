@@ -52,14 +52,18 @@ def test_pieces_stay_inside_the_room_and_do_not_interpenetrate(rooms):
         solids = [s for s in room.shapes if s.kind in ("cube", "sphere")]
         boxes = [_world_aabb(s) for s in solids]
         for s, b in zip(solids, boxes, strict=True):
-            assert np.all(b[0] >= lo - 1e-6) and np.all(b[1] <= hi + 1e-6), f"seed {room.seed}: {s.role} leaves the room"
+            assert np.all(b[0] >= lo - 1e-6) and np.all(b[1] <= hi + 1e-6), (
+                f"seed {room.seed}: {s.role} leaves the room"
+            )
         # small objects: footprint circles (xz) of objects standing at the same height must be disjoint
         objects = []
         for s in solids:
             if s.role != "object":
                 continue
             m = np.asarray(s.to_world)
-            radius = m[0, 0] if s.kind == "sphere" else np.linalg.norm([np.linalg.norm(m[:3, 0]), np.linalg.norm(m[:3, 2])])
+            radius = (
+                m[0, 0] if s.kind == "sphere" else np.linalg.norm([np.linalg.norm(m[:3, 0]), np.linalg.norm(m[:3, 2])])
+            )
             objects.append((m[:3, 3], radius, _world_aabb(s)[0, 1]))
         for (c1, r1, y1), (c2, r2, y2) in itertools.combinations(objects, 2):
             if abs(y1 - y2) < 1e-6:

@@ -27,9 +27,16 @@ def test_synthesize_stage_reports_and_tracks(micro_stage_paths):
 def test_preprocess_stage_reports_and_tracks(micro_stage_paths, tmp_path):
     from stages import preprocess
 
-    cfg = compose_cfg("preprocess", ["profile=micro", f"paths.outputs={tmp_path}/outputs",
-                                     f"paths.reports={tmp_path}/reports", "progress=false",
-                                     f"data.interiorverse.generated_root={micro_stage_paths['outputs']}/synthesize"])
+    cfg = compose_cfg(
+        "preprocess",
+        [
+            "profile=micro",
+            f"paths.outputs={tmp_path}/outputs",
+            f"paths.reports={tmp_path}/reports",
+            "progress=false",
+            f"data.interiorverse.generated_root={micro_stage_paths['outputs']}/synthesize",
+        ],
+    )
     metrics = preprocess.run(cfg)
     assert metrics["views_kept"] == 6 and metrics["views_rejected"] == 0 and metrics["lighting_available"] == 1
     rejected = json.loads((tmp_path / "reports" / "preprocess" / "rejected.json").read_text())

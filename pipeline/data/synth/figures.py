@@ -34,8 +34,17 @@ def _light_panel(light: dict | None) -> tuple[np.ndarray | None, np.ndarray | No
 def contact_sheet(root: str | Path, views: list[tuple[str, str]], path: str | Path) -> Path:
     """Write a PNG with one row per (scene, view): image, albedo, normal, depth, roughness, metallic, mask,
     a surface-probe hemisphere and a free-point sphere (lighting ground truth) when present."""
-    cols = ["image (tonemapped)", "albedo", "normal", "depth (m)", "roughness", "metallic", "mask",
-            "surface probe L_i", "free point L_i"]
+    cols = [
+        "image (tonemapped)",
+        "albedo",
+        "normal",
+        "depth (m)",
+        "roughness",
+        "metallic",
+        "mask",
+        "surface probe L_i",
+        "free point L_i",
+    ]
     fig, axes = plt.subplots(len(views), len(cols), figsize=(2.0 * len(cols), 1.75 * len(views) + 0.4), squeeze=False)
     for r, (scene, view) in enumerate(views):
         check = iv.read_view(root, scene, view)
@@ -44,8 +53,17 @@ def contact_sheet(root: str | Path, views: list[tuple[str, str]], path: str | Pa
         m = check.maps
         depth = np.where(m["mask"][..., 0] > 0, m["depth"][..., 0] / 1000.0, np.nan)
         hemi, sphere = _light_panel(check.light)
-        panels = [tonemap(m["im"]), np.clip(m["albedo"], 0, 1) ** (1 / 2.2), (m["normal"] + 1) / 2, depth,
-                  m["material"][..., 0], m["material"][..., 1], m["mask"][..., 0], hemi, sphere]
+        panels = [
+            tonemap(m["im"]),
+            np.clip(m["albedo"], 0, 1) ** (1 / 2.2),
+            (m["normal"] + 1) / 2,
+            depth,
+            m["material"][..., 0],
+            m["material"][..., 1],
+            m["mask"][..., 0],
+            hemi,
+            sphere,
+        ]
         for c, img in enumerate(panels):
             ax = axes[r, c]
             ax.set_xticks([])

@@ -71,8 +71,11 @@ def assign_splits(n: int, fractions: dict, seed: int) -> dict[str, list[str]]:
     n_val = max(1, round(fractions["val"] * n))
     if n_test + n_val >= n:
         raise ValueError(f"synth.splits={fractions}: leaves no training scene out of {n}")
-    return {"test": sorted(names[:n_test]), "val": sorted(names[n_test:n_test + n_val]),
-            "train": sorted(names[n_test + n_val:])}
+    return {
+        "test": sorted(names[:n_test]),
+        "val": sorted(names[n_test : n_test + n_val]),
+        "train": sorted(names[n_test + n_val :]),
+    }
 
 
 def render_scene(index: int, seed: int, cfg: SynthConfig, out: str, variant: str, threads: int) -> dict:
@@ -105,24 +108,38 @@ def render_scene(index: int, seed: int, cfg: SynthConfig, out: str, variant: str
         with timer("write"):
             iv.write_view(out, name, view, {"im": im, **gb}, half=cfg.half_float)
             iv.write_light(out, name, view, light)
-        cameras[view] = {"fov_x_deg": cam.fov_x_deg, "width": cfg.width, "height": cfg.height,
-                         **mb.intrinsics(cam.fov_x_deg, cfg.width, cfg.height),
-                         "world_from_view": mb.world_from_view(cam).tolist()}
+        cameras[view] = {
+            "fov_x_deg": cam.fov_x_deg,
+            "width": cfg.width,
+            "height": cfg.height,
+            **mb.intrinsics(cam.fov_x_deg, cfg.width, cfg.height),
+            "world_from_view": mb.world_from_view(cam).tolist(),
+        }
         valid_fraction.append(float(gb["mask"].mean()))
         n_surf += len(light["surf_position"])
         n_free += len(light["free_position"])
     (Path(out) / name / "cameras.json").write_text(json.dumps(cameras, indent=1))
     (Path(out) / name / "scene.json").write_text(json.dumps(room.to_json()))
-    return {"scene": name, "seconds": timer.seconds, "redraws": redraws, "valid_fraction": valid_fraction,
-            "surface_probes": n_surf, "free_probes": n_free, "shapes": len(room.shapes),
-            "windows": len(room.windows), "lamps": sum(s.role == "lamp" for s in room.shapes)}
+    return {
+        "scene": name,
+        "seconds": timer.seconds,
+        "redraws": redraws,
+        "valid_fraction": valid_fraction,
+        "surface_probes": n_surf,
+        "free_probes": n_free,
+        "shapes": len(room.shapes),
+        "windows": len(room.windows),
+        "lamps": sum(s.role == "lamp" for s in room.shapes),
+    }
 
 
 def prepare_output(out: Path) -> None:
     """Start from an empty output folder. A non-empty folder is cleared only if this stage made it."""
     if out.exists() and any(out.iterdir()):
         if not (out / MARKER).exists():
-            raise FileExistsError(f"{out}: exists, is not empty and was not written by `synthesize`; refusing to clear it")
+            raise FileExistsError(
+                f"{out}: exists, is not empty and was not written by `synthesize`; refusing to clear it"
+            )
         shutil.rmtree(out)
     out.mkdir(parents=True, exist_ok=True)
     (out / MARKER).write_text("written by the synthesize stage; cleared on every run\n")
@@ -152,7 +169,14 @@ def synthesize(cfg: SynthConfig, out: str | Path, seed: int, progress: bool = Tr
     wall = time.perf_counter() - t0
     iv.write_splits(out, splits)
     results.sort(key=lambda r: r["scene"])
-    summary = {"variant": variant, "workers": workers, "wall_seconds": wall, "scenes": results,
-               "splits": {k: len(v) for k, v in splits.items()}, "config": asdict(cfg), "seed": seed}
+    summary = {
+        "variant": variant,
+        "workers": workers,
+        "wall_seconds": wall,
+        "scenes": results,
+        "splits": {k: len(v) for k, v in splits.items()},
+        "config": asdict(cfg),
+        "seed": seed,
+    }
     (out / "dataset.json").write_text(json.dumps(summary, indent=1, default=list))
     return summary

@@ -116,16 +116,23 @@ def random_material(rng: np.random.Generator, role: str) -> Material:
         if u < 0.3:  # wood
             base = _hsv_colour(rng, (0.05, 0.1), (0.4, 0.8), (0.1, 0.5))
             other = _hsv_colour(rng, (0.04, 0.1), (0.4, 0.8), (0.05, 0.35))
-            return Material(role, base, float(rng.uniform(0.3, 0.7)), 0.0, _texture(rng, other, None, ("planks", "stripes")))
+            return Material(
+                role, base, float(rng.uniform(0.3, 0.7)), 0.0, _texture(rng, other, None, ("planks", "stripes"))
+            )
         if u < 0.5:  # metal
-            return Material(role, _hsv_colour(rng, (0.0, 0.15), (0.0, 0.5), (0.5, 0.95)),
-                            float(rng.uniform(0.05, 0.5)), 1.0)
+            return Material(
+                role, _hsv_colour(rng, (0.0, 0.15), (0.0, 0.5), (0.5, 0.95)), float(rng.uniform(0.05, 0.5)), 1.0
+            )
         if u < 0.65:  # glossy plastic / lacquer
-            return Material(role, _hsv_colour(rng, (0.0, 1.0), (0.3, 0.9), (0.1, 0.8)), float(rng.uniform(0.05, 0.2)), 0.0)
+            return Material(
+                role, _hsv_colour(rng, (0.0, 1.0), (0.3, 0.9), (0.1, 0.8)), float(rng.uniform(0.05, 0.2)), 0.0
+            )
         if u < 0.8:  # fabric, patterned
             base = _hsv_colour(rng, (0.0, 1.0), (0.2, 0.8), (0.1, 0.7))
             other = _hsv_colour(rng, (0.0, 1.0), (0.2, 0.8), (0.1, 0.7))
-            return Material(role, base, float(rng.uniform(0.85, 1.0)), 0.0, _texture(rng, other, None, ("checker", "blotches")))
+            return Material(
+                role, base, float(rng.uniform(0.85, 1.0)), 0.0, _texture(rng, other, None, ("checker", "blotches"))
+            )
         return Material(role, _hsv_colour(rng, (0.0, 1.0), (0.0, 0.8), (0.05, 0.9)), float(rng.uniform(0.2, 1.0)), 0.0)
     if role == "object":
         metallic = float(rng.choice([0.0, 1.0, rng.uniform(0.0, 1.0)], p=[0.45, 0.35, 0.2]))

@@ -49,8 +49,9 @@ def choose_variant(requested: str = "auto") -> str:
     if requested != "auto":
         return requested
     try:
-        out = subprocess.run([sys.executable, "-c", _PROBE], env=_env_with_llvm(), capture_output=True,
-                             text=True, timeout=120)
+        out = subprocess.run(
+            [sys.executable, "-c", _PROBE], env=_env_with_llvm(), capture_output=True, text=True, timeout=120
+        )
         if out.returncode == 0 and "ok" in out.stdout:
             return "llvm_ad_rgb"
     except subprocess.TimeoutExpired:
@@ -127,15 +128,22 @@ def _sky_bitmap(sky, height: int = 128) -> np.ndarray:
 
 
 def _texture_dict(mi, array: np.ndarray, raw: bool) -> dict:
-    return {"type": "bitmap", "bitmap": mi.Bitmap(np.ascontiguousarray(array, np.float32)),
-            "raw": raw, "filter_type": "nearest"}
+    return {
+        "type": "bitmap",
+        "bitmap": mi.Bitmap(np.ascontiguousarray(array, np.float32)),
+        "raw": raw,
+        "filter_type": "nearest",
+    }
 
 
 def bsdf_dict(mi, material) -> dict:
     """Mitsuba `principled` BSDF (alpha = roughness^2, F0 = 0.04 for dielectrics) for a Material."""
     albedo_map, rough_map = material.albedo_map(), material.roughness_map()
-    base = (_texture_dict(mi, albedo_map, raw=True) if albedo_map is not None
-            else {"type": "rgb", "value": list(material.albedo)})
+    base = (
+        _texture_dict(mi, albedo_map, raw=True)
+        if albedo_map is not None
+        else {"type": "rgb", "value": list(material.albedo)}
+    )
     rough = _texture_dict(mi, rough_map[..., None], raw=True) if rough_map is not None else material.roughness
     return {"type": "principled", "base_color": base, "roughness": rough, "metallic": material.metallic}
 
@@ -170,12 +178,16 @@ def render_view(scene, camera: Camera, width: int, height: int, spp: int, seed: 
     """(H, W, 3) float32 HDR radiance from Mitsuba's perspective sensor (box filter, path tracing)."""
     import mitsuba as mi
 
-    sensor = mi.load_dict({
-        "type": "perspective", "fov": float(camera.fov_x_deg), "fov_axis": "x",
-        "to_world": mi.ScalarTransform4f().look_at(origin=camera.origin, target=camera.target, up=[0, 1, 0]),
-        "sampler": {"type": "independent", "sample_count": int(spp)},
-        "film": {"type": "hdrfilm", "width": int(width), "height": int(height), "rfilter": {"type": "box"}},
-    })
+    sensor = mi.load_dict(
+        {
+            "type": "perspective",
+            "fov": float(camera.fov_x_deg),
+            "fov_axis": "x",
+            "to_world": mi.ScalarTransform4f().look_at(origin=camera.origin, target=camera.target, up=[0, 1, 0]),
+            "sampler": {"type": "independent", "sample_count": int(spp)},
+            "film": {"type": "hdrfilm", "width": int(width), "height": int(height), "rfilter": {"type": "box"}},
+        }
+    )
     img = mi.render(scene, sensor=sensor, spp=int(spp), seed=int(seed) & 0x7FFFFFFF)
     return np.array(img, dtype=np.float32)[..., :3]
 
@@ -222,11 +234,20 @@ def _intersect_one(scene, o, d):
     si = scene.ray_intersect(ray)
     if not si.is_valid():
         z3 = np.zeros(3)
-        return {"hit": False, "t": np.inf, "normal": z3, "albedo": z3.astype(np.float32),
-                "roughness": np.float32(0), "metallic": np.float32(0), "lamp": False}
+        return {
+            "hit": False,
+            "t": np.inf,
+            "normal": z3,
+            "albedo": z3.astype(np.float32),
+            "roughness": np.float32(0),
+            "metallic": np.float32(0),
+            "lamp": False,
+        }
     bsdf = si.bsdf(ray)
     return {
-        "hit": True, "t": float(si.t), "normal": np.array(si.sh_frame.n, float),
+        "hit": True,
+        "t": float(si.t),
+        "normal": np.array(si.sh_frame.n, float),
         "albedo": np.array(bsdf.eval_attribute_3("base_color", si, True), np.float32),
         "roughness": np.float32(bsdf.eval_attribute_1("roughness", si, True)),
         "metallic": np.float32(bsdf.eval_attribute_1("metallic", si, True)),
@@ -234,8 +255,9 @@ def _intersect_one(scene, o, d):
     }
 
 
-def radiance(scene, origins: np.ndarray, directions: np.ndarray, spp: int, seed: int,
-             batch_rays: int = 1 << 21) -> tuple[np.ndarray, np.ndarray]:
+def radiance(
+    scene, origins: np.ndarray, directions: np.ndarray, spp: int, seed: int, batch_rays: int = 1 << 21
+) -> tuple[np.ndarray, np.ndarray]:
     """Incident radiance L_i(o, -d) arriving at o from direction d, i.e. radiance along the ray o + t d,
     path traced with `spp` independent samples per ray. Returns mean (N, 3) and its standard error (N, 3)."""
     n = len(origins)

@@ -242,8 +242,12 @@ def _add_shell(room: Room, rng, cfg: RoomConfig, add_material) -> None:
     W, H, D = room.size
     floor_m, ceil_m, wall_m = add_material("floor"), add_material("ceiling"), add_material("wall")
     hx, hz = W / 2, D / 2
-    room.shapes.append(Shape("rectangle", frame_matrix([0, 0, 0], [hx, 0, 0], [0, 0, -hz], [0, 1, 0]), floor_m, "floor"))
-    room.shapes.append(Shape("rectangle", frame_matrix([0, H, 0], [hx, 0, 0], [0, 0, hz], [0, -1, 0]), ceil_m, "ceiling"))
+    room.shapes.append(
+        Shape("rectangle", frame_matrix([0, 0, 0], [hx, 0, 0], [0, 0, -hz], [0, 1, 0]), floor_m, "floor")
+    )
+    room.shapes.append(
+        Shape("rectangle", frame_matrix([0, H, 0], [hx, 0, 0], [0, 0, hz], [0, -1, 0]), ceil_m, "ceiling")
+    )
     # Walls: (centre of the wall, unit horizontal axis along it, half length, inward normal)
     walls = [
         (np.array([0, H / 2, -hz]), np.array([1.0, 0, 0]), hx, np.array([0, 0, 1.0])),
@@ -308,7 +312,9 @@ def _random_sky(rng) -> Sky:
     horizon = (np.array([0.85, 0.9, 1.0]) * scale * 1.3).tolist()
     ground = (np.array([0.35, 0.3, 0.25]) * scale * 0.6).tolist()
     warm = np.array([1.0, float(rng.uniform(0.85, 0.95)), float(rng.uniform(0.7, 0.85))])
-    return Sky(zenith, horizon, ground, sun, (warm * float(rng.uniform(150, 500))).tolist(), float(rng.uniform(2.5, 4.0)))
+    return Sky(
+        zenith, horizon, ground, sun, (warm * float(rng.uniform(150, 500))).tolist(), float(rng.uniform(2.5, 4.0))
+    )
 
 
 def _add_furniture(room: Room, rng, cfg: RoomConfig, add_material) -> list[Footprint]:
@@ -364,8 +370,12 @@ def _draw_footprint(rng, W, D, w, d, against_wall: bool) -> Footprint | None:
     ext = np.abs(fp.axes().T) @ half
     if W / 2 <= ext[0] + 0.1 or D / 2 <= ext[1] + 0.1:
         return None
-    fp.centre = np.array([rng.uniform(-W / 2 + ext[0] + 0.1, W / 2 - ext[0] - 0.1),
-                          rng.uniform(-D / 2 + ext[1] + 0.1, D / 2 - ext[1] - 0.1)])
+    fp.centre = np.array(
+        [
+            rng.uniform(-W / 2 + ext[0] + 0.1, W / 2 - ext[0] - 0.1),
+            rng.uniform(-D / 2 + ext[1] + 0.1, D / 2 - ext[1] - 0.1),
+        ]
+    )
     return fp
 
 
@@ -404,7 +414,9 @@ def _add_lamps(room: Room, rng, cfg: RoomConfig, add_material) -> None:
     boxes: list[Footprint] = []
     for _ in range(n):
         half = np.array([float(rng.uniform(0.15, 0.45)), float(rng.uniform(0.15, 0.45))])
-        fp = Footprint(np.array([rng.uniform(-W / 2 + 0.6, W / 2 - 0.6), rng.uniform(-D / 2 + 0.6, D / 2 - 0.6)]), half, 0.0)
+        fp = Footprint(
+            np.array([rng.uniform(-W / 2 + 0.6, W / 2 - 0.6), rng.uniform(-D / 2 + 0.6, D / 2 - 0.6)]), half, 0.0
+        )
         if any(fp.overlaps(b, gap=0.2) for b in boxes):
             continue
         boxes.append(fp)
@@ -414,8 +426,13 @@ def _add_lamps(room: Room, rng, cfg: RoomConfig, add_material) -> None:
         power = float(rng.uniform(6.0, 30.0)) * (0.1 / (half[0] * half[1])) ** 0.5
         centre = [fp.centre[0], H - 0.001, fp.centre[1]]
         room.shapes.append(
-            Shape("rectangle", frame_matrix(centre, [half[0], 0, 0], [0, 0, half[1]], [0, -1, 0]),
-                  lamp_m, "lamp", (kelvin_tint * power).tolist())
+            Shape(
+                "rectangle",
+                frame_matrix(centre, [half[0], 0, 0], [0, 0, half[1]], [0, -1, 0]),
+                lamp_m,
+                "lamp",
+                (kelvin_tint * power).tolist(),
+            )
         )
 
 

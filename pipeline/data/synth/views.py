@@ -74,7 +74,9 @@ def hemisphere_directions(normals: np.ndarray, rows: int, cols: int) -> np.ndarr
     st, ct = np.sin(theta)[:, None, None], np.cos(theta)[:, None, None]
     sp, cp = np.sin(phi)[None, :, None], np.cos(phi)[None, :, None]
     local = [st * cp, st * sp, ct * np.ones_like(cp)]  # each (rows, cols, 1)
-    return local[0][None] * t[:, None, None] + local[1][None] * bt[:, None, None] + local[2][None] * normals[:, None, None]
+    return (
+        local[0][None] * t[:, None, None] + local[1][None] * bt[:, None, None] + local[2][None] * normals[:, None, None]
+    )
 
 
 def sphere_directions(rows: int, cols: int) -> np.ndarray:
@@ -85,8 +87,9 @@ def sphere_directions(rows: int, cols: int) -> np.ndarray:
     return np.stack([np.sin(th) * np.sin(ph), np.cos(th), -np.sin(th) * np.cos(ph)], -1)
 
 
-def lighting_probes(scene, camera: Camera, gb: dict, cfg: LightingConfig, rng: np.random.Generator,
-                    seed: int) -> dict[str, np.ndarray]:
+def lighting_probes(
+    scene, camera: Camera, gb: dict, cfg: LightingConfig, rng: np.random.Generator, seed: int
+) -> dict[str, np.ndarray]:
     """Incident radiance maps: hemispheres at a grid of valid surface pixels and full spheres at free
     points (between the camera and a visible surface, hence never inside furniture). Positions, normals
     and directions in view space; radiance is L_i(p, w) arriving at p from w (the ray p + t w)."""
@@ -125,12 +128,18 @@ def lighting_probes(scene, camera: Camera, gb: dict, cfg: LightingConfig, rng: n
     surf_L, surf_se = query(surf_pos, hemi, surf_n, 0)
     free_L, free_se = query(free_pos, sphere, None, 1)
     return {
-        "surf_pixel": pix.astype(np.int32), "surf_position": surf_pos.astype(np.float32),
-        "surf_normal": surf_n.astype(np.float32), "surf_directions": hemi.astype(np.float32),
-        "surf_radiance": surf_L, "surf_stderr": surf_se,
-        "free_position": free_pos.astype(np.float32), "free_directions": np.array(sphere, np.float32),
-        "free_radiance": free_L, "free_stderr": free_se,
-        "probe_offset_m": np.float32(PROBE_OFFSET_M), "spp": np.int32(cfg.spp),
+        "surf_pixel": pix.astype(np.int32),
+        "surf_position": surf_pos.astype(np.float32),
+        "surf_normal": surf_n.astype(np.float32),
+        "surf_directions": hemi.astype(np.float32),
+        "surf_radiance": surf_L,
+        "surf_stderr": surf_se,
+        "free_position": free_pos.astype(np.float32),
+        "free_directions": np.array(sphere, np.float32),
+        "free_radiance": free_L,
+        "free_stderr": free_se,
+        "probe_offset_m": np.float32(PROBE_OFFSET_M),
+        "spp": np.int32(cfg.spp),
     }
 
 

@@ -1,0 +1,65 @@
+"""`invrender` command line: dataset checks and figures (later stages add their own subcommands)."""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from pathlib import Path
+
+
+def _validate(args) -> int:
+    from pipeline.data import interiorverse as iv
+
+    root = Path(args.root)
+    splits = iv.read_splits(root)
+    rejected, total = [], 0
+    for split, scenes in splits.items():
+        for scene in scenes:
+            for view in iv.list_views(root, scene):
+                total += 1
+                check = iv.read_view(root, scene, view, args.max_inconsistent_fraction)
+                rejected.extend({"split": split, "scene": scene, "view": view, **r} for r in check.reasons)
+    bad_views = len({(r["scene"], r["view"]) for r in rejected})
+    for r in rejected:
+        print(f"REJECT {r['file']}: {r['reason']}")
+    print(json.dumps({"root": str(root), "views": total, "rejected_views": bad_views,
+                      "scenes": {k: len(v) for k, v in splits.items()}}))
+    return 1 if rejected else 0
+
+
+def _sheet(args) -> int:
+    from pipeline.data import interiorverse as iv
+    from pipeline.data.synth.figures import contact_sheet
+
+    root = Path(args.root)
+    views = [(s, v) for s in iv.read_split(root, args.split) for v in iv.list_views(root, s)][: args.views]
+    print(contact_sheet(root, views, args.out))
+    return 0
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(prog="invrender", description=__doc__)
+    sub = parser.add_subparsers(dest="command", required=True)
+    v = sub.add_parser("validate", help="check every view of an InteriorVerse-layout root")
+    v.add_argument("root")
+    v.add_argument("--max-inconsistent-fraction", type=float, default=0.01)
+    v.set_defaults(func=_validate)
+    s = sub.add_parser("sheet", help="contact sheet PNG (image + every map) of a few views")
+    s.add_argument("root")
+    s.add_argument("--out", required=True)
+    s.add_argument("--split", default="test", choices=("train", "val", "test"))
+    s.add_argument("--views", type=int, default=4)
+    s.set_defaults(func=_sheet)
+    args = parser.parse_args(argv)
+    from pipeline.data.interiorverse import DatasetError
+
+    try:
+        return args.func(args)
+    except DatasetError as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return 2
+
+
+if __name__ == "__main__":
+    sys.exit(main())
