@@ -175,3 +175,21 @@ def test_real_data_without_cameras_needs_a_fov(dataset_copy, tmp_path):
 def test_missing_root_is_named(tmp_path):
     with pytest.raises(iv.DatasetError, match="nowhere: dataset root does not exist"):
         preprocess(tmp_path / "nowhere", tmp_path / "out", 48, 64, progress=False)
+
+
+def test_datamodule_batches_by_split_with_seeded_shuffle(dataset_copy, tmp_path):
+    from pipeline.data.datamodules import InteriorVerseDataModule
+
+    preprocess(dataset_copy, tmp_path / "shards", 24, 32, progress=False)
+    orders = []
+    for _ in range(2):
+        dm = InteriorVerseDataModule(tmp_path / "shards", batch_size=3, seed=4)
+        dm.setup("fit")
+        batch = next(iter(dm.train_dataloader()))
+        assert batch["im"].shape == (3, 3, 24, 32) and batch["mask"].shape == (3, 1, 24, 32)
+        orders.append(batch["id"])
+    assert orders[0] == orders[1], "same seed, same shuffle"
+    dm.setup("test")
+    test_ids = [i for b in dm.test_dataloader() for i in b["id"]]
+    train_scenes = {i.split("/")[0] for i in dm.splits["train"].ids}
+    assert test_ids and not train_scenes & {i.split("/")[0] for i in test_ids}
