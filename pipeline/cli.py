@@ -23,8 +23,16 @@ def _validate(args) -> int:
     bad_views = len({(r["scene"], r["view"]) for r in rejected})
     for r in rejected:
         print(f"REJECT {r['file']}: {r['reason']}")
-    print(json.dumps({"root": str(root), "views": total, "rejected_views": bad_views,
-                      "scenes": {k: len(v) for k, v in splits.items()}}))
+    print(
+        json.dumps(
+            {
+                "root": str(root),
+                "views": total,
+                "rejected_views": bad_views,
+                "scenes": {k: len(v) for k, v in splits.items()},
+            }
+        )
+    )
     return 1 if rejected else 0
 
 

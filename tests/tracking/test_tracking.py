@@ -48,3 +48,20 @@ def test_stage_run_tags_params_config_and_nesting(monkeypatch):
     assert run.info.run_name == "unit_stage-micro"
     arts = [a.path for a in mlflow.MlflowClient().list_artifacts(run.info.run_id, "config")]
     assert arts == ["config/unit_stage.yaml"]
+
+
+def test_sweep_callback_nests_job_runs_under_one_parent():
+    from pipeline.tracking.hydra_callbacks import MLflowSweepParent
+
+    cfg = OmegaConf.create({"stage": "unit_sweep", "profile_name": "micro", "tracking": {"uri": None}})
+    cb = MLflowSweepParent()
+    cb.on_multirun_start(cfg)
+    parent = mlflow.active_run().info.run_id
+    children = []
+    for _ in range(2):
+        with stage_run("unit_sweep", cfg) as run:
+            children.append(run.info.run_id)
+    cb.on_multirun_end(cfg)
+    assert mlflow.active_run() is None
+    assert {mlflow.get_run(c).data.tags["mlflow.parentRunId"] for c in children} == {parent}
+    assert mlflow.get_run(parent).data.tags["sweep"] == "true"

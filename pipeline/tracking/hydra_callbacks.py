@@ -1,0 +1,48 @@
+"""Hydra callback: a multirun sweep is one MLflow parent run with every job's stage run nested in it."""
+
+from __future__ import annotations
+
+import os
+from typing import Any
+
+from hydra.experimental.callback import Callback
+from omegaconf import DictConfig, OmegaConf
+
+from pipeline.tracking.mlflow_run import EXPERIMENT, git_sha, project_root, tracking_uri
+
+
+class MLflowSweepParent(Callback):
+    """Opens `<stage>-sweep` before the first job and closes it after the last. Jobs of Hydra's basic
+    launcher run in this process, so `stage_run` sees the active parent and nests under it."""
+
+    def __init__(self) -> None:
+        self._run = None
+
+    def on_multirun_start(self, config: DictConfig, **kwargs: Any) -> None:
+        import mlflow
+
+        uri, artifacts = tracking_uri(OmegaConf.select(config, "tracking.uri"))
+        mlflow.set_tracking_uri(uri)
+        name = OmegaConf.select(config, "tracking.experiment") or EXPERIMENT
+        if mlflow.get_experiment_by_name(name) is None:
+            mlflow.create_experiment(name, artifact_location=artifacts)
+        mlflow.set_experiment(name)
+        stage = str(OmegaConf.select(config, "stage") or "sweep")
+        overrides = list(OmegaConf.select(config, "hydra.overrides.task") or [])
+        self._run = mlflow.start_run(
+            run_name=f"{stage}-sweep",
+            tags={
+                "stage": stage,
+                "sweep": "true",
+                "git_sha": git_sha(project_root()),
+                "dvc_exp_name": os.environ.get("DVC_EXP_NAME", ""),
+            },
+        )
+        mlflow.log_param("sweep_overrides", " ".join(overrides)[:6000])
+
+    def on_multirun_end(self, config: DictConfig, **kwargs: Any) -> None:
+        import mlflow
+
+        if self._run is not None:
+            mlflow.end_run()
+            self._run = None
