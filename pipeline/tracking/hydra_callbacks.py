@@ -8,7 +8,7 @@ from typing import Any
 from hydra.experimental.callback import Callback
 from omegaconf import DictConfig, OmegaConf
 
-from pipeline.tracking.mlflow_run import EXPERIMENT, git_sha, project_root, tracking_uri
+from pipeline.tracking.mlflow_run import activate_experiment, git_sha, project_root
 
 
 class MLflowSweepParent(Callback):
@@ -21,12 +21,7 @@ class MLflowSweepParent(Callback):
     def on_multirun_start(self, config: DictConfig, **kwargs: Any) -> None:
         import mlflow
 
-        uri, artifacts = tracking_uri(OmegaConf.select(config, "tracking.uri"))
-        mlflow.set_tracking_uri(uri)
-        name = OmegaConf.select(config, "tracking.experiment") or EXPERIMENT
-        if mlflow.get_experiment_by_name(name) is None:
-            mlflow.create_experiment(name, artifact_location=artifacts)
-        mlflow.set_experiment(name)
+        activate_experiment(config)
         stage = str(OmegaConf.select(config, "stage") or "sweep")
         overrides = list(OmegaConf.select(config, "hydra.overrides.task") or [])
         self._run = mlflow.start_run(

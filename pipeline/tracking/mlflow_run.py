@@ -76,11 +76,9 @@ def _flatten(d: dict, prefix: str = "") -> dict[str, str]:
     return flat
 
 
-@contextlib.contextmanager
-def stage_run(stage: str, cfg: DictConfig, tags: dict[str, str] | None = None) -> Iterator:
-    """Open an MLflow run named `<stage>-<profile>` tagged with stage, profile, git sha and DVC_EXP_NAME;
-    log the resolved config (params + `config/<stage>.yaml` artifact). Nested when a parent run is active
-    (Hydra sweeps). Yields the active `mlflow` run."""
+def activate_experiment(cfg: DictConfig) -> None:
+    """Point MLflow at the configured store and experiment (`tracking.uri`, `tracking.experiment`),
+    creating the experiment with its absolute artifact location on first use."""
     import mlflow
 
     uri, artifacts = tracking_uri(OmegaConf.select(cfg, "tracking.uri"))
@@ -89,6 +87,16 @@ def stage_run(stage: str, cfg: DictConfig, tags: dict[str, str] | None = None) -
     if mlflow.get_experiment_by_name(name) is None:
         mlflow.create_experiment(name, artifact_location=artifacts)
     mlflow.set_experiment(name)
+
+
+@contextlib.contextmanager
+def stage_run(stage: str, cfg: DictConfig, tags: dict[str, str] | None = None) -> Iterator:
+    """Open an MLflow run named `<stage>-<profile>` tagged with stage, profile, git sha and DVC_EXP_NAME;
+    log the resolved config (params + `config/<stage>.yaml` artifact). Nested when a parent run is active
+    (Hydra sweeps). Yields the active `mlflow` run."""
+    import mlflow
+
+    activate_experiment(cfg)
     profile = str(OmegaConf.select(cfg, "profile_name") or "unknown")
     all_tags = {
         "stage": stage,
