@@ -1,0 +1,43 @@
+"""Pinhole camera in the DESIGN.md convention (OpenGL view space, pixel centres at +0.5, z-depth).
+
+fov_x is the horizontal field of view in degrees; fx = fy = (W/2)/tan(fov_x/2), cx = W/2, cy = H/2.
+The view-space point at pixel (i, j) with z-depth z is z * ((j+.5-cx)/fx, -(i+.5-cy)/fy, -1).
+"""
+
+from __future__ import annotations
+
+import math
+
+import torch
+
+
+def focal(fov_x: float | torch.Tensor, width: int) -> torch.Tensor | float:
+    """Focal length in pixels from the horizontal FOV (degrees); works on floats and tensors."""
+    if torch.is_tensor(fov_x):
+        return (width / 2) / torch.tan(torch.deg2rad(fov_x) / 2)
+    return (width / 2) / math.tan(math.radians(fov_x) / 2)
+
+
+def pixel_directions(height: int, width: int, fov_x: float, device=None, dtype=torch.float32) -> torch.Tensor:
+    """(H, W, 3) view-space ray directions through pixel centres, scaled so that z = -1 (not unit)."""
+    f = focal(fov_x, width)
+    i = torch.arange(height, device=device, dtype=dtype) + 0.5
+    j = torch.arange(width, device=device, dtype=dtype) + 0.5
+    ii, jj = torch.meshgrid(i, j, indexing="ij")
+    return torch.stack([(jj - width / 2) / f, -(ii - height / 2) / f, -torch.ones_like(ii)], -1)
+
+
+def backproject(depth: torch.Tensor, fov_x: float) -> torch.Tensor:
+    """z-depth (B, H, W) metres -> view-space points (B, H, W, 3)."""
+    _, H, W = depth.shape
+    return depth[..., None] * pixel_directions(H, W, fov_x, depth.device, depth.dtype)
+
+
+def project(points: torch.Tensor, fov_x: float, height: int, width: int) -> tuple[torch.Tensor, torch.Tensor]:
+    """View-space points (N, 3) -> continuous pixel coordinates (N, 2) as (col x, row y), where pixel
+    (i, j) covers [j, j+1) x [i, i+1), and z-depth (N,) (positive in front of the camera)."""
+    f = focal(fov_x, width)
+    z = -points[..., 2]
+    x = points[..., 0] / z * f + width / 2
+    y = -points[..., 1] / z * f + height / 2
+    return torch.stack([x, y], -1), z
