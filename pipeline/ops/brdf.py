@@ -37,8 +37,10 @@ def f0(albedo: torch.Tensor, metallic: torch.Tensor) -> torch.Tensor:
 def ggx_d(cos_h: torch.Tensor, alpha: torch.Tensor) -> torch.Tensor:
     """GGX normal distribution D(h) for cos(theta_h) (N,) > 0; 0 where cos_h <= 0."""
     a2 = alpha * alpha
-    c2 = cos_h.clamp(min=0) ** 2
-    denom = c2 * (a2 - 1) + 1
+    c2 = cos_h.clamp(0, 1) ** 2
+    # sin^2 + a^2 cos^2 rather than c^2 (a^2 - 1) + 1: in float32 a^2 - 1 rounds to -1 for tiny alpha and
+    # the latter cancels to 0 at the lobe's peak; this form stays >= a^2 c^2 > 0
+    denom = (1 - c2) + a2 * c2
     return torch.where(cos_h > 0, a2 / (math.pi * denom * denom), torch.zeros_like(cos_h))
 
 
