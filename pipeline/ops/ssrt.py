@@ -67,7 +67,6 @@ def trace(
     levels = min_pyramid(clean)
     sizes = torch.tensor([lv.shape[-2:] for lv in levels], device=dev)  # (L, 2) rows, cols
     offsets = torch.tensor([0] + [lv.numel() for lv in levels], device=dev).cumsum(0)[:-1]
-    flat = torch.cat([lv.reshape(-1) for lv in levels])
     top = len(levels) - 1
     f = focal(fov_x, W)
     n_flat = normal.permute(0, 2, 3, 1).reshape(-1, 3).to(dt)
