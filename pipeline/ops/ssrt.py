@@ -49,6 +49,7 @@ def trace(
     direction: torch.Tensor,
     batch_index: torch.Tensor | None = None,
     max_steps: int = 4096,
+    max_level: int | None = None,
 ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
     """March rays across depth maps.
 
@@ -56,7 +57,9 @@ def trace(
     space; fov_x degrees; origin, direction (N, 3) view space; batch_index (N,) long (None = image 0).
     Returns pixel (N, 2) long (row, col) of the hit (-1 on misses), hit (N,) bool and gap (N,) metres
     (ray depth minus surface depth on entering the hit pixel, >= 0; 0 on misses). Rays that leave the
-    image, reach the near plane or never pass behind a facing surface are misses."""
+    image, reach the near plane or never pass behind a facing surface are misses. max_level caps the
+    pyramid level a ray may skip at (0 = a plain pixel-by-pixel march, for comparison); the hits do not
+    depend on it."""
     B, H, W = depth.shape
     dev, dt = depth.device, depth.dtype
     N = origin.shape[0]
@@ -67,7 +70,7 @@ def trace(
     levels = min_pyramid(clean)
     sizes = torch.tensor([lv.shape[-2:] for lv in levels], device=dev)  # (L, 2) rows, cols
     offsets = torch.tensor([0] + [lv.numel() for lv in levels], device=dev).cumsum(0)[:-1]
-    top = len(levels) - 1
+    top = len(levels) - 1 if max_level is None else min(len(levels) - 1, int(max_level))
     f = focal(fov_x, W)
     n_flat = normal.permute(0, 2, 3, 1).reshape(-1, 3).to(dt)
 
@@ -119,7 +122,7 @@ def trace(
     # of max(1/z) = 1/min(z), so a step needs no division.
     inv_levels = torch.cat([(1.0 / lv).reshape(-1) for lv in levels])  # inf -> 0: never "behind"
     # per level: rows, cols, offset into inv_levels, 2^level -- one gather per step instead of four
-    level_table = torch.cat([sizes, offsets[:, None], (2 ** torch.arange(top + 1, device=dev))[:, None]], 1)
+    level_table = torch.cat([sizes, offsets[:, None], (2 ** torch.arange(len(levels), device=dev))[:, None]], 1)
     small = D.abs() <= 1e-12
     inv_d = 1.0 / torch.where(small, torch.ones_like(D), D)
     ids = torch.nonzero(ok).squeeze(-1)

@@ -102,3 +102,13 @@ def test_degenerate_rays_are_finite():
     assert torch.isfinite(gap).all() and (gap >= 0).all()
     assert (pix[hit, 0] < 30).all() and (pix[hit, 1] < 40).all() and (pix[hit] >= 0).all()
     assert not hit[:10].any()
+
+
+def test_hierarchy_only_skips_work_never_changes_hits():
+    scene = BoxRoom.default()
+    depth, normal = scene.render(48, 64, 85.0)
+    o, wi = ssrt_rays(depth, normal, 85.0, 2, torch.Generator().manual_seed(5))
+    full = ssrt.trace(depth.float(), normal.float(), 85.0, o.float(), wi.float())
+    flat = ssrt.trace(depth.float(), normal.float(), 85.0, o.float(), wi.float(), max_level=0)
+    for a, b in zip(full, flat, strict=True):
+        assert torch.equal(a, b)
