@@ -119,8 +119,8 @@ def adaptive_gain(rows) -> list[dict]:
     return out
 
 
-def run(quick: bool = False, repeats: int = 3, ref_spp: int = 2048) -> dict:
-    view = bench_view()
+def run(quick: bool = False, repeats: int = 3, ref_spp: int = 2048, size: tuple[int, int] = (120, 160)) -> dict:
+    view = bench_view(*size)
     ref = render(view, MCRenderLayer("importance", spp=ref_spp), seed=123)
     glossy = (view["roughness"][0, 0] < 0.3) & (view["mask"][0, 0] > 0)
     rough = (view["roughness"][0, 0] >= 0.3) & (view["mask"][0, 0] > 0)

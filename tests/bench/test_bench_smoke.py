@@ -1,0 +1,30 @@
+"""The benchmark harnesses run end to end on tiny inputs and their summaries are computed from the rows."""
+
+import pytest
+
+from pipeline.bench import render_layer, ssrt
+
+
+def test_render_layer_bench_runs_small():
+    report = render_layer.run(quick=True, repeats=1, ref_spp=64, size=(12, 16))
+    names = {r["estimator"] for r in report["results"]}
+    assert names == {"importance", "uniform", "adaptive", "adaptive_uniform", "li2020"}
+    assert all(r["seconds"] > 0 and r["relmse_glossy"] >= 0 for r in report["results"])
+    ratios = report["summary"]["li2020_over_importance_glossy_error_at_equal_time"]
+    assert len(ratios) == 2 and all(r["ratio"] > 0 for r in ratios)
+
+
+def test_equal_time_ratio_interpolates_in_log_log():
+    rows = [
+        {"estimator": "importance", "seconds": 0.1, "relmse_glossy": 1.0},
+        {"estimator": "importance", "seconds": 10.0, "relmse_glossy": 0.01},
+        {"estimator": "li2020", "seconds": 1.0, "relmse_glossy": 0.5, "li_size": [8, 16]},
+    ]
+    (r,) = render_layer.equal_time_ratio(rows, "glossy")
+    assert r["importance_error_at_equal_time"] == pytest.approx(0.1) and r["ratio"] == pytest.approx(5.0)
+
+
+def test_ssrt_bench_runs_small():
+    report = ssrt.run(resolutions=((24, 32),), levels=(0, None), rays_per_pixel=2, repeats=1)
+    assert len(report["results"]) == 2 and all(r["rays_per_second"] > 0 for r in report["results"])
+    assert report["results"][0]["recall"] == report["results"][1]["recall"]
