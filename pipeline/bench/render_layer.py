@@ -101,6 +101,46 @@ def equal_time_ratio(rows, group: str) -> list[dict]:
     return out
 
 
+_MEMORY_PROBE = """
+import resource, sys, torch
+from pipeline.bench.render_layer import bench_view, environment
+from pipeline.models.render_layer import MCRenderLayer
+spp, chunk = int(sys.argv[1]), int(sys.argv[2])
+view = bench_view()
+rough = view["roughness"].clone().requires_grad_()
+albedo = view["albedo"].clone().requires_grad_()
+before = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
+out = MCRenderLayer("importance", spp=spp, chunk=chunk)(view["normal"], albedo, rough, view["metallic"],
+    view["mask"], view["fov"], lambda k, wi: environment(wi), torch.Generator().manual_seed(0))
+out["rgb"].sum().backward()
+print(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss - before)
+"""
+
+
+def memory_with_gradients(spps=(16, 64, 256), chunk: int = 1 << 16) -> list[dict]:
+    """Peak resident memory added by one forward + backward pass (with gradients to roughness and albedo)
+    per spp, each in a fresh process: flat in spp when chunking + checkpointing bound it. Large blocks
+    are mmap-backed in the probe so freed chunks go back to the OS; otherwise glibc's heap keeps them and
+    peak RSS creeps up with the number of chunks although no tensor outlives its chunk."""
+    import os
+    import subprocess
+    import sys
+
+    rows = []
+    for spp in spps:
+        out = subprocess.run(
+            [sys.executable, "-c", _MEMORY_PROBE, str(spp), str(chunk)],
+            capture_output=True,
+            text=True,
+            check=True,
+            env={**os.environ, "MALLOC_MMAP_THRESHOLD_": "131072"},
+        )
+        rows.append(
+            {"samples_per_pixel": spp, "chunk": chunk, "peak_rss_increase_mib": int(out.stdout.split()[-1]) / 1024}
+        )
+    return rows
+
+
 def adaptive_gain(rows) -> list[dict]:
     """Error of lobe-driven sample allocation over even allocation at the same sample budget."""
     base = {(r["estimator"], r["samples_per_pixel"]): r for r in rows}

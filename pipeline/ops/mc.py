@@ -6,9 +6,11 @@ Estimators (DESIGN.md section 5):
   li2020      Li et al. 2020's discretised hemisphere: n_theta x n_phi cell centres, uniform in theta in
               [0, pi/2] and phi, each weighted by sin(theta) dtheta dphi (pi^2/128 sin(theta) at 8 x 16)
 
-Per-pixel sample counts may differ (adaptive sampling): samples are laid out flat, pixel by pixel, and
-summed back with index_add, in chunks of `chunk` samples so peak memory does not grow with the count.
-With gradients on, each chunk is checkpointed (recomputed in backward) for the same reason.
+Per-pixel sample counts may differ (adaptive sampling): samples are numbered flat, pixel by pixel, and
+processed in chunks of `chunk` samples. A chunk finds its pixels from the cumulative counts, draws its
+random numbers from a counter-based hash of (seed, sample number) and sums its contributions per pixel
+itself; with gradients on it is checkpointed (recomputed in backward). So no per-sample tensor outlives
+its chunk and memory does not grow with the sample count, and results do not depend on the chunk size.
 Unbiased by construction: directions and pdf are detached, there is no clamp on the pdf, and a sample
 with pdf 0 contributes exactly 0. Gradients reach albedo, roughness, metallic, normal (through f and
 the cosine) and the radiance callback.
@@ -40,6 +42,32 @@ def li2020_directions(n_theta: int = 8, n_phi: int = 16, dtype=torch.float32, de
     return dirs, (th.sin() * dth * dph).reshape(-1)
 
 
+_MASK64 = (1 << 64) - 1
+
+
+def _i64(c: int) -> int:
+    """A 64-bit constant as the signed int64 torch stores (two's complement)."""
+    return c - (1 << 64) if c >= 1 << 63 else c
+
+
+def _shr(z: torch.Tensor, k: int) -> torch.Tensor:
+    """Logical right shift of int64 bit patterns (torch's >> is arithmetic on signed ints)."""
+    return (z >> k) & ((1 << (64 - k)) - 1)
+
+
+def counter_uniform(seed: int, index: torch.Tensor, dims: int = 3) -> torch.Tensor:
+    """Uniform numbers in [0, 1) (len(index), dims) that depend only on (seed, index): a splitmix64 hash of
+    the counter seed * 2^32 + index * dims + d, keeping the top 24 bits. Chunks of samples can therefore
+    draw (and, in backward, redraw) their own numbers without storing any, and the result does not
+    depend on how the samples were chunked."""
+    x = (index.long()[:, None] * dims + torch.arange(dims, device=index.device)) + (int(seed) << 32)
+    z = x + _i64(0x9E3779B97F4A7C15)
+    z = (z ^ _shr(z, 30)) * _i64(0xBF58476D1CE4E5B9)
+    z = (z ^ _shr(z, 27)) * _i64(0x94D049BB133111EB)
+    z = z ^ _shr(z, 31)
+    return _shr(z, 40).to(torch.float64) / float(1 << 24)
+
+
 def allocate_samples(albedo, roughness, metallic, valid, budget: int, glossy_gain: float = 8.0) -> torch.Tensor:
     """Samples per pixel (N,) long summing to `budget` (when budget >= #valid): masked pixels get 0, every
     valid pixel at least 1, the rest in proportion to w = (1 - k_s) + k_s * min(glossy_gain, 1/roughness),
@@ -65,8 +93,15 @@ def allocate_samples(albedo, roughness, metallic, valid, budget: int, glossy_gai
     return counts
 
 
-def _contributions(mode, pix, u, normal, wo, albedo, roughness, metallic, radiance_fn, li_dirs, li_w):
-    """Weighted samples of one chunk: (diffuse (M, 3), specular (M, 3)) = f * L * cos / pdf."""
+def _contributions(mode, start, stop, seed, cum, normal, wo, albedo, roughness, metallic, radiance_fn, li_dirs, li_w):
+    """Samples start..stop-1 (global sample indices), each at its pixel (from the cumulative counts `cum`):
+    per-pixel sums (diffuse (N, 3), specular (N, 3)) of f * L * cos / pdf over these samples."""
+    sample = torch.arange(start, stop, device=normal.device)
+    pix = torch.searchsorted(cum, sample, right=True) - 1
+    if mode == "li2020":
+        u = (sample - cum[pix]).to(normal.dtype).unsqueeze(-1).expand(-1, 3)  # index of the fixed direction
+    else:
+        u = counter_uniform(seed, sample).to(normal.dtype)
     n, o, a = normal[pix], wo[pix], albedo[pix]
     r, m = roughness.reshape(-1)[pix], metallic.reshape(-1)[pix]
     with torch.no_grad():
@@ -89,7 +124,10 @@ def _contributions(mode, pix, u, normal, wo, albedo, roughness, metallic, radian
     if weight_num is not None:
         w = w * weight_num
     L = radiance_fn(pix, wi)
-    return f_d * L * w.unsqueeze(-1), f_s * L * w.unsqueeze(-1)
+    # summed per pixel here, inside the (checkpointed) chunk: index_add saves its per-sample source for
+    # backward, which outside the checkpoint would keep every chunk's samples alive
+    zeros = torch.zeros(normal.shape[0], 3, dtype=normal.dtype, device=normal.device)
+    return zeros.index_add(0, pix, f_d * L * w.unsqueeze(-1)), zeros.index_add(0, pix, f_s * L * w.unsqueeze(-1))
 
 
 def estimate(
@@ -120,26 +158,34 @@ def estimate(
     elif isinstance(counts, int):
         counts = torch.full((N,), counts, dtype=torch.long, device=dev)
     counts = counts.to(dev)
-    pix_all = torch.repeat_interleave(torch.arange(N, device=dev), counts)
-    total = pix_all.shape[0]
-    if estimator == "li2020":
-        starts = torch.cumsum(counts, 0) - counts
-        k = (torch.arange(total, device=dev) - starts[pix_all]).to(dt)
-        u_all = torch.stack([k, k, k], -1)
-    else:
-        u_all = torch.rand(total, 3, generator=generator, device=dev, dtype=dt)
+    cum = torch.zeros(N + 1, dtype=torch.long, device=dev)
+    cum[1:] = torch.cumsum(counts, 0)
+    total = int(cum[-1])
+    seed = int(torch.randint(0, 1 << 30, (1,), generator=generator)) if estimator != "li2020" else 0
     diffuse = torch.zeros(N, 3, dtype=dt, device=dev)
     specular = torch.zeros(N, 3, dtype=dt, device=dev)
     grads = torch.is_grad_enabled()  # the callback may hold parameters even when the G-buffers do not
-    for s in range(0, total, chunk):
-        pix, u = pix_all[s : s + chunk], u_all[s : s + chunk]
-        args = (estimator, pix, u, normal, wo, albedo, roughness, metallic, radiance_fn, li_dirs, li_w)
-        if grads:
+    for start in range(0, total, chunk):
+        args = (
+            estimator,
+            start,
+            min(total, start + chunk),
+            seed,
+            cum,
+            normal,
+            wo,
+            albedo,
+            roughness,
+            metallic,
+            radiance_fn,
+            li_dirs,
+            li_w,
+        )
+        if grads:  # recompute the chunk in backward: memory stays at one chunk whatever the sample count
             d, sp = checkpoint(_contributions, *args, use_reentrant=False)
         else:
             d, sp = _contributions(*args)
-        diffuse = diffuse.index_add(0, pix, d)
-        specular = specular.index_add(0, pix, sp)
+        diffuse, specular = diffuse + d, specular + sp
     if estimator != "li2020":
         scale = 1.0 / counts.clamp(min=1).to(dt).unsqueeze(-1)
         diffuse, specular = diffuse * scale, specular * scale

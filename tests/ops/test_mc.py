@@ -175,3 +175,33 @@ def test_adaptive_allocation_spends_the_budget_on_glossy_pixels():
     assert counts.sum() == 90 and counts[3] == 0 and counts[0] > counts[2] > 0 and counts[1] >= 1
     with pytest.raises(ValueError, match="budget"):
         mc.allocate_samples(a, r, m, valid, budget=2)
+
+
+def test_memory_for_gradients_does_not_grow_with_samples():
+    """Autograd keeps only the shared G-buffer tensors whatever the sample count: chunks are checkpointed
+    and summed per pixel inside, so no per-sample tensor outlives its chunk."""
+    n, wo, a, r, mt = _points(300, 0.3, 30.0, 0.5)
+    a, r = a.clone().requires_grad_(), r.clone().requires_grad_()
+    saved = {}
+    for spp in (4, 64):
+        storages = set()
+
+        def pack(t, storages=storages):
+            storages.add((t.untyped_storage().data_ptr(), t.untyped_storage().nbytes()))
+            return t
+
+        with torch.autograd.graph.saved_tensors_hooks(pack, lambda t: t):
+            mc.estimate(lambda k, wi: _sky(wi), n, wo, a, r, mt, spp, torch.Generator().manual_seed(0), chunk=256)
+        saved[spp] = sum(nbytes for _, nbytes in storages)
+    assert saved[64] == saved[4] and saved[4] < 300 * 3 * 8 * 8
+
+
+def test_counter_uniform_is_uniform_and_independent():
+    from scipy import stats
+
+    u = mc.counter_uniform(12345, torch.arange(200_000)).numpy()
+    for d in range(3):
+        assert stats.kstest(u[:, d], "uniform").pvalue > 1e-3
+    assert abs(np.corrcoef(u[:, 0], u[:, 1])[0, 1]) < 0.01 and abs(np.corrcoef(u[:-1, 0], u[1:, 0])[0, 1]) < 0.01
+    assert (u >= 0).all() and (u < 1).all()
+    assert not np.array_equal(u, mc.counter_uniform(12346, torch.arange(200_000)).numpy())
