@@ -193,6 +193,7 @@ def run(quick: bool = False, repeats: int = 3, ref_spp: int = 2048, size: tuple[
             "importance_frame_seconds_at_16spp": frame16,
             "reference_code_frame_seconds_at_16spp": 6.9,
             "adaptive_over_even_error_at_equal_budget": adaptive_gain(rows),
+            "memory_with_gradients": memory_with_gradients() if not quick else [],
         },
     }
 
