@@ -42,3 +42,10 @@ def write_report(name: str, payload: dict) -> Path:
     path.parent.mkdir(parents=True, exist_ok=True)
     path.write_text(json.dumps({"benchmark": name, "machine": machine(), **payload}, indent=1) + "\n")
     return path
+
+
+def publish(name: str, report: dict, plot) -> Path:
+    """Write reports/bench/<name>.json and, beside it, the figure `plot(report, path)` draws as <name>.png."""
+    path = write_report(name, report)
+    plot(report, path.with_suffix(".png"))
+    return path

@@ -21,7 +21,7 @@ import numpy as np  # noqa: E402
 import torch  # noqa: E402
 from tqdm import tqdm  # noqa: E402
 
-from pipeline.bench.common import median_seconds, write_report  # noqa: E402
+from pipeline.bench.common import median_seconds, publish  # noqa: E402
 from pipeline.bench.scenes import BoxRoom  # noqa: E402
 from pipeline.models.render_layer import MCRenderLayer  # noqa: E402
 
@@ -224,8 +224,7 @@ def main(argv=None) -> None:
     p.add_argument("--repeats", type=int, default=3)
     a = p.parse_args(argv)
     report = run(a.quick, a.repeats)
-    path = write_report("render_layer", report)
-    plot(report, path.with_suffix(".png"))
+    path = publish("render_layer", report, plot)
     for r in report["results"]:
         print(
             f"{r['estimator']:>10} spp={r['samples_per_pixel']:>4} {r['seconds']:.3f}s "

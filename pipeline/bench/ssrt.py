@@ -16,7 +16,7 @@ import matplotlib.pyplot as plt  # noqa: E402
 import torch  # noqa: E402
 from tqdm import tqdm  # noqa: E402
 
-from pipeline.bench.common import median_seconds, write_report  # noqa: E402
+from pipeline.bench.common import median_seconds, publish  # noqa: E402
 from pipeline.bench.scenes import BoxRoom, score_ssrt, ssrt_rays  # noqa: E402
 from pipeline.ops import ssrt  # noqa: E402
 
@@ -81,8 +81,7 @@ def main(argv=None) -> None:
     p.add_argument("--repeats", type=int, default=3)
     a = p.parse_args(argv)
     report = run(repeats=a.repeats, device=a.device)
-    path = write_report("ssrt", report)
-    plot(report, path.with_suffix(".png"))
+    path = publish("ssrt", report, plot)
     for r in report["results"]:
         print(
             f"{r['width']}x{r['height']} level={r['max_level']}: {r['rays_per_second']:,.0f} rays/s "
