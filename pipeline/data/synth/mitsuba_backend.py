@@ -17,8 +17,10 @@ import subprocess
 import sys
 
 import numpy as np
+import torch
 
 from pipeline.data.synth.scene import Camera, Room
+from pipeline.ops.camera import focal, pixel_directions
 
 DEFAULT_LLVM = "/usr/lib/x86_64-linux-gnu/libLLVM.so.19.1"
 VARIANTS = ("llvm_ad_rgb", "scalar_rgb")
@@ -95,16 +97,14 @@ def world_from_view(camera: Camera) -> np.ndarray:
 
 def intrinsics(fov_x_deg: float, width: int, height: int) -> dict[str, float]:
     """Pinhole intrinsics from the horizontal FOV: fx = fy = (W/2)/tan(fov_x/2), principal point at the centre."""
-    f = (width / 2) / math.tan(math.radians(fov_x_deg) / 2)
+    f = float(focal(fov_x_deg, width))
     return {"fx": f, "fy": f, "cx": width / 2, "cy": height / 2}
 
 
 def view_rays(fov_x_deg: float, width: int, height: int) -> np.ndarray:
     """(H*W, 3) unit view-space directions through pixel centres, row-major (row 0 = top)."""
-    k = intrinsics(fov_x_deg, width, height)
-    i, j = np.meshgrid(np.arange(height) + 0.5, np.arange(width) + 0.5, indexing="ij")
-    d = np.stack([(j - k["cx"]) / k["fx"], -(i - k["cy"]) / k["fy"], -np.ones_like(i)], -1).reshape(-1, 3)
-    return d / np.linalg.norm(d, axis=1, keepdims=True)
+    d = pixel_directions(height, width, fov_x_deg, dtype=torch.float64).reshape(-1, 3)
+    return torch.nn.functional.normalize(d, dim=-1).numpy()
 
 
 # ----------------------------------------------------------------------------------------------------
