@@ -11,9 +11,11 @@ import time
 from dataclasses import dataclass
 
 import numpy as np
+import torch
 
 from pipeline.data.synth import mitsuba_backend as mb
 from pipeline.data.synth.scene import Camera
+from pipeline.ops.frames import orthonormal_basis
 
 PROBE_OFFSET_M = 2e-3  # probe rays start this far along the normal, clear of the surface they sit on
 
@@ -54,21 +56,10 @@ def gbuffer(scene, camera: Camera, width: int, height: int) -> dict[str, np.ndar
     }
 
 
-def orthonormal_basis(n: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Tangent and bitangent (N, 3) completing unit normals n (N, 3) to right-handed frames, continuous
-    everywhere except where n_z changes sign (the construction divides by 1 + |n_z|, never by ~0)."""
-    sign = np.where(n[:, 2] >= 0, 1.0, -1.0)
-    a = -1.0 / (sign + n[:, 2])
-    b = n[:, 0] * n[:, 1] * a
-    t = np.stack([1 + sign * n[:, 0] ** 2 * a, sign * b, -sign * n[:, 0]], -1)
-    bt = np.stack([b, sign + n[:, 1] ** 2 * a, -n[:, 1]], -1)
-    return t, bt
-
-
 def hemisphere_directions(normals: np.ndarray, rows: int, cols: int) -> np.ndarray:
     """(P, rows, cols, 3) directions at texel centres: theta = (a+.5)/rows * pi/2 from the normal,
-    phi = (b+.5)/cols * 2 pi from the tangent towards the bitangent of `orthonormal_basis`."""
-    t, bt = orthonormal_basis(normals)
+    phi = (b+.5)/cols * 2 pi from the tangent towards the bitangent of `ops.frames.orthonormal_basis`."""
+    t, bt = (x.numpy() for x in orthonormal_basis(torch.from_numpy(np.asarray(normals, np.float64))))
     theta = (np.arange(rows) + 0.5) / rows * (math.pi / 2)
     phi = (np.arange(cols) + 0.5) / cols * (2 * math.pi)
     st, ct = np.sin(theta)[:, None, None], np.cos(theta)[:, None, None]
