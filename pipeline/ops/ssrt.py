@@ -153,20 +153,22 @@ def trace(
     st[:, 8] = torch.where(starts_inside[ids], s_first, torch.zeros_like(s_first))
     b_of = bidx[ids]
     live = st[:, 8] < 1
+    level_scale = level_table[:, 3].to(dt)
+    take = torch.index_select  # plain row gathers: leaner than advanced indexing on CPU
     for _ in range(max_steps):
         n_live = int(live.sum())
         if n_live == 0:
             break
         if n_live < 0.75 * live.numel():  # compact by one shared index, only once enough rays have finished
             keep = torch.nonzero(live).squeeze(-1)
-            ids, st, flat_small = ids[keep], st[keep], flat_small[keep]
-            lvl, b_of, live = lvl[keep], b_of[keep], live[keep]
-        tab = level_table[lvl]
+            ids, st, flat_small = take(ids, 0, keep), take(st, 0, keep), take(flat_small, 0, keep)
+            lvl, b_of, live = take(lvl, 0, keep), take(b_of, 0, keep), take(live, 0, keep)
+        tab = take(level_table, 0, lvl)
         rows, cols = tab[:, 0], tab[:, 1]
-        cell, s_out = step_geometry(st, flat_small, tab[:, 3].to(dt))
+        cell, s_out = step_geometry(st, flat_small, take(level_scale, 0, lvl))
         cx = torch.minimum(cell[:, 0].clamp(min=0), cols - 1)
         cy = torch.minimum(cell[:, 1].clamp(min=0), rows - 1)
-        iz_cell = inv_levels[tab[:, 2] + (b_of * rows + cy) * cols + cx]
+        iz_cell = take(inv_levels, 0, tab[:, 2] + (b_of * rows + cy) * cols + cx)
         iz_in = torch.addcmul(st[:, 6], st[:, 8], st[:, 7])
         iz_out = torch.addcmul(st[:, 6], s_out, st[:, 7])
         behind = torch.minimum(iz_in, iz_out) <= iz_cell  # the ray's far end reaches the nearest surface
@@ -174,16 +176,18 @@ def trace(
         li = torch.nonzero(leaf).squeeze(-1)
         done = torch.zeros_like(leaf)
         if li.numel():
-            pix_flat = (b_of[li] * H + cy[li]) * W + cx[li]
-            facing = (n_flat[pix_flat] * d[ids[li]]).sum(-1) < 0
+            cy_l, cx_l = take(cy, 0, li), take(cx, 0, li)
+            pix_flat = (take(b_of, 0, li) * H + cy_l) * W + cx_l
+            facing = (take(n_flat, 0, pix_flat) * take(d, 0, take(ids, 0, li))).sum(-1) < 0
             fi = li[facing]
             done[fi] = True
             k = ids[fi]
             hit[k] = True
-            pixel[k, 0], pixel[k, 1] = cy[fi], cx[fi]
+            pixel[k, 0], pixel[k, 1] = cy_l[facing], cx_l[facing]
             gap[k] = (1.0 / torch.maximum(iz_in[fi], iz_out[fi]) - 1.0 / iz_cell[fi]).clamp(min=0)
         advance = ~behind | (leaf & ~done)
         st[:, 8] = torch.where(advance, s_out, st[:, 8])
-        lvl = torch.where(behind & (lvl > 0), lvl - 1, torch.where(~behind, (lvl + 1).clamp(max=top), lvl))
+        # clear: one level up (to skip more next time); blocked above the pixel level: one level down
+        lvl = (lvl + (~behind).long() - (behind & (lvl > 0)).long()).clamp(max=top)
         live = live & ~done & (st[:, 8] < 1)
     return pixel, hit, gap
