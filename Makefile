@@ -28,7 +28,8 @@ $(STAMP): requirements.lock pyproject.toml
 llvm:
 	@if [ ! -e $(LLVM_LIB) ]; then \
 	  if [ "$$(id -u)" = 0 ] && command -v apt-get >/dev/null; then \
-	    apt-get update -qq && DEBIAN_FRONTEND=noninteractive apt-get install -y -qq libllvm19 >/dev/null; \
+	    { apt-get update -qq && DEBIAN_FRONTEND=noninteractive apt-get install -y -qq libllvm19 >/dev/null; } \
+	      || echo "warning: could not install libllvm19; Mitsuba will fall back to scalar_rgb (2.4x slower)"; \
 	  else echo "note: libLLVM 19 missing and not root; Mitsuba will fall back to scalar_rgb"; fi; \
 	fi
 
