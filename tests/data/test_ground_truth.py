@@ -239,17 +239,16 @@ def test_splits_are_by_scene_and_cover_every_scene(micro_root):
     assert all(splits[s] for s in iv.SPLITS)
 
 
+def _one_view_config(width: int, height: int) -> SynthConfig:
+    """A one-view, few-sample generator config for tests that render whole scenes."""
+    probes = LightingConfig(surface_stride=width // 3, hemi_size=(2, 4), free_points=1, sphere_size=(2, 4), spp=2)
+    return SynthConfig(scenes=3, views=1, width=width, height=height, spp=4, lighting=probes)
+
+
 def test_same_seed_renders_identical_files(tmp_path, mitsuba_variant):
     """A scene is a pure function of (seed, index): rendering it again, after another scene was loaded in
     the same process, matches bit for bit (Mitsuba's loader must not reorder emitters)."""
-    cfg = SynthConfig(
-        scenes=3,
-        views=1,
-        width=32,
-        height=24,
-        spp=4,
-        lighting=LightingConfig(surface_stride=12, hemi_size=(2, 4), free_points=1, sphere_size=(2, 4), spp=2),
-    )
+    cfg = _one_view_config(32, 24)
     for out, index in (("a", 1), ("other", 2), ("b", 1)):
         (tmp_path / out).mkdir()
         render_scene(index, 11, cfg, str(tmp_path / out), mitsuba_variant, 2)
@@ -267,14 +266,7 @@ def test_same_seed_renders_identical_files(tmp_path, mitsuba_variant):
 
 def test_scalar_fallback_gives_the_same_ground_truth(tmp_path, mitsuba_variant):
     """Machines without libLLVM 19 render with scalar_rgb (per-ray loops): same maps as llvm."""
-    cfg = SynthConfig(
-        scenes=3,
-        views=1,
-        width=16,
-        height=12,
-        spp=4,
-        lighting=LightingConfig(surface_stride=6, hemi_size=(2, 4), free_points=1, sphere_size=(2, 4), spp=2),
-    )
+    cfg = _one_view_config(16, 12)
     variants = ["scalar_rgb"] + (["llvm_ad_rgb"] if mitsuba_variant == "llvm_ad_rgb" else [])
     try:
         maps = {}
