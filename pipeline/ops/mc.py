@@ -42,9 +42,6 @@ def li2020_directions(n_theta: int = 8, n_phi: int = 16, dtype=torch.float32, de
     return dirs, (th.sin() * dth * dph).reshape(-1)
 
 
-_MASK64 = (1 << 64) - 1
-
-
 def _i64(c: int) -> int:
     """A 64-bit constant as the signed int64 torch stores (two's complement)."""
     return c - (1 << 64) if c >= 1 << 63 else c
