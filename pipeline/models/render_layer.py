@@ -58,10 +58,12 @@ class MCRenderLayer(nn.Module):
         wo = -torch.nn.functional.normalize(view.reshape(-1, 3), dim=-1)[idx]
         n = torch.nn.functional.normalize(flat(normal)[idx], dim=-1)
         a, r, m = flat(albedo)[idx], flat(roughness)[idx, 0], flat(metallic)[idx, 0]
-        if self.adaptive and self.estimator != "li2020":
+        if self.estimator == "li2020":  # a fixed grid: one sample per cell
+            counts = torch.full_like(idx, self.li_size[0] * self.li_size[1])
+        elif self.adaptive:
             counts = mc.allocate_samples(a, r, m, torch.ones_like(r, dtype=torch.bool), self.spp * len(idx))
         else:
-            counts = self.spp
+            counts = torch.full_like(idx, self.spp)
 
         def local_radiance(k: torch.Tensor, wi: torch.Tensor) -> torch.Tensor:
             return radiance(idx[k], wi)
@@ -73,10 +75,6 @@ class MCRenderLayer(nn.Module):
             out[name] = img.reshape(B, H, W, 3).permute(0, 3, 1, 2)
         out["rgb"] = out["diffuse"] + out["specular"]
         cnt = torch.zeros(B * H * W, dtype=torch.long, device=normal.device)
-        cnt[idx] = (
-            counts
-            if torch.is_tensor(counts)
-            else (self.li_size[0] * self.li_size[1] if self.estimator == "li2020" else counts)
-        )
+        cnt[idx] = counts
         out["counts"] = cnt.reshape(B, 1, H, W)
         return out
