@@ -13,6 +13,8 @@ import math
 
 import torch
 
+from pipeline.ops.frames import unit
+
 ALPHA_MIN = 1e-4  # roughness 0.01: below it float32 GGX lobes are numerically a delta
 LUMA = (0.2126, 0.7152, 0.0722)  # Rec. 709
 
@@ -70,8 +72,7 @@ def evaluate(normal, wo, wi, albedo, roughness, metallic) -> tuple[torch.Tensor,
     cos_i = (normal * wi).sum(-1)
     above = (cos_o > 0) & (cos_i > 0)
     diffuse = (1 - m) * albedo / math.pi
-    h = wo + wi
-    h = h / h.norm(dim=-1, keepdim=True).clamp(min=1e-12)
+    h = unit(wo + wi)
     cos_h = (normal * h).sum(-1)
     cos_oh = (wo * h).sum(-1).clamp(0, 1)
     spec_f0 = f0(albedo, metallic)

@@ -27,3 +27,8 @@ def to_local(v: torch.Tensor, t: torch.Tensor, b: torch.Tensor, n: torch.Tensor)
 def from_local(v: torch.Tensor, t: torch.Tensor, b: torch.Tensor, n: torch.Tensor) -> torch.Tensor:
     """Frame coordinates v (..., 3) -> world/view vectors."""
     return v[..., :1] * t + v[..., 1:2] * b + v[..., 2:3] * n
+
+
+def unit(v: torch.Tensor) -> torch.Tensor:
+    """v (..., 3) scaled to unit length (zero vectors stay zero instead of becoming NaN)."""
+    return v / v.norm(dim=-1, keepdim=True).clamp(min=1e-12)

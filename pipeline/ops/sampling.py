@@ -18,13 +18,9 @@ import math
 import torch
 
 from pipeline.ops.brdf import alpha_from_roughness, f0, ggx_d, luminance, smith_g1
-from pipeline.ops.frames import from_local, orthonormal_basis, to_local
+from pipeline.ops.frames import from_local, orthonormal_basis, to_local, unit
 
 LOBE_MIN = 0.01  # each lobe is picked with probability at least this
-
-
-def _unit(v: torch.Tensor) -> torch.Tensor:
-    return v / v.norm(dim=-1, keepdim=True).clamp(min=1e-12)
 
 
 def specular_probability(albedo: torch.Tensor, metallic: torch.Tensor) -> torch.Tensor:
@@ -57,17 +53,17 @@ def uniform_local(u1: torch.Tensor, u2: torch.Tensor) -> torch.Tensor:
 def vndf_local(wo: torch.Tensor, alpha: torch.Tensor, u1: torch.Tensor, u2: torch.Tensor) -> torch.Tensor:
     """GGX visible-normal half-vectors (N, 3) for local wo (N, 3) with wo.z > 0, isotropic alpha (N,)."""
     a = alpha.unsqueeze(-1)
-    v = _unit(torch.cat([wo[:, :2] * a, wo[:, 2:]], -1))
+    v = unit(torch.cat([wo[:, :2] * a, wo[:, 2:]], -1))
     phi = 2 * math.pi * u1
     z = (1 - u2) * (1 + v[:, 2]) - v[:, 2]
     s = torch.sqrt((1 - z * z).clamp(min=0))
     h = torch.stack([s * torch.cos(phi), s * torch.sin(phi), z], -1) + v
-    return _unit(torch.cat([h[:, :2] * a, h[:, 2:].clamp(min=0)], -1))
+    return unit(torch.cat([h[:, :2] * a, h[:, 2:].clamp(min=0)], -1))
 
 
 def specular_pdf_local(wo: torch.Tensor, wi: torch.Tensor, alpha: torch.Tensor) -> torch.Tensor:
     """Density (N,) over wi of reflecting wo about a visible normal: G1(wo) D(h) / (4 cos_o)."""
-    h = _unit(wo + wi)
+    h = unit(wo + wi)
     cos_o = wo[:, 2]
     ok = (cos_o > 0) & (h[:, 2] > 0) & ((wo * h).sum(-1) > 0)
     pdf = smith_g1(cos_o, alpha) * ggx_d(h[:, 2], alpha) / (4 * cos_o.clamp(min=1e-12))
@@ -76,6 +72,12 @@ def specular_pdf_local(wo: torch.Tensor, wi: torch.Tensor, alpha: torch.Tensor) 
 
 def diffuse_pdf_local(wi: torch.Tensor) -> torch.Tensor:
     return wi[:, 2].clamp(min=0) / math.pi
+
+
+def _mixture_pdf_local(wo, wi, alpha, p_spec) -> torch.Tensor:
+    """Density (N,) of the k_s mixture at local wi; 0 where wo is below the horizon (nothing is sampled)."""
+    p = p_spec * specular_pdf_local(wo, wi, alpha) + (1 - p_spec) * diffuse_pdf_local(wi)
+    return torch.where(wo[:, 2] > 0, p, torch.zeros_like(p))
 
 
 # ---- the BRDF sampler (stable entry points) --------------------------------------------------------
@@ -93,20 +95,15 @@ def sample(u, normal, wo, albedo, roughness, metallic) -> tuple[torch.Tensor, to
     wi_spec = 2 * (wo_l * h).sum(-1, keepdim=True) * h - wo_l
     wi_diff = cosine_local(u[:, 1], u[:, 2])
     wi_l = torch.where((u[:, 0] < p_spec).unsqueeze(-1), wi_spec, wi_diff)
-    wi_l = _unit(wi_l)
-    pdf = p_spec * specular_pdf_local(wo_l, wi_l, alpha) + (1 - p_spec) * diffuse_pdf_local(wi_l)
-    pdf = torch.where(wo_l[:, 2] > 0, pdf, torch.zeros_like(pdf))
-    return from_local(wi_l, t, b, normal), pdf
+    wi_l = unit(wi_l)
+    return from_local(wi_l, t, b, normal), _mixture_pdf_local(wo_l, wi_l, alpha, p_spec)
 
 
 def pdf(normal, wo, wi, albedo, roughness, metallic) -> torch.Tensor:
     """Mixture density (N,) over solid angle of `sample` drawing wi."""
     t, b = orthonormal_basis(normal)
     wo_l, wi_l = to_local(wo, t, b, normal), to_local(wi, t, b, normal)
-    alpha = alpha_from_roughness(roughness)
-    p_spec = specular_probability(albedo, metallic)
-    p = p_spec * specular_pdf_local(wo_l, wi_l, alpha) + (1 - p_spec) * diffuse_pdf_local(wi_l)
-    return torch.where(wo_l[:, 2] > 0, p, torch.zeros_like(p))
+    return _mixture_pdf_local(wo_l, wi_l, alpha_from_roughness(roughness), specular_probability(albedo, metallic))
 
 
 def sample_uniform(u, normal) -> tuple[torch.Tensor, torch.Tensor]:
