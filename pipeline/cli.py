@@ -13,13 +13,10 @@ def _validate(args) -> int:
 
     root = Path(args.root)
     splits = iv.read_splits(root)
-    rejected, total = [], 0
-    for split, scenes in splits.items():
-        for scene in scenes:
-            for view in iv.list_views(root, scene):
-                total += 1
-                check = iv.read_view(root, scene, view, args.max_inconsistent_fraction)
-                rejected.extend({"split": split, "scene": scene, "view": view, **r} for r in check.reasons)
+    jobs = iv.split_views(root, splits)
+    rejected = []
+    for split, scene, view in jobs:
+        rejected.extend(iv.read_view(root, scene, view, args.max_inconsistent_fraction).rejections(split))
     bad_views = len({(r["scene"], r["view"]) for r in rejected})
     for r in rejected:
         print(f"REJECT {r['file']}: {r['reason']}")
@@ -27,7 +24,7 @@ def _validate(args) -> int:
         json.dumps(
             {
                 "root": str(root),
-                "views": total,
+                "views": len(jobs),
                 "rejected_views": bad_views,
                 "scenes": {k: len(v) for k, v in splits.items()},
             }

@@ -96,6 +96,13 @@ def list_views(root: str | Path, scene: str) -> list[str]:
     return sorted(views)
 
 
+def split_views(root: str | Path, splits: dict[str, list[str]]) -> list[tuple[str, str, str]]:
+    """Every (split, scene, view) of the listed scenes, in split-file order."""
+    return [
+        (split, scene, view) for split, scenes in splits.items() for scene in scenes for view in list_views(root, scene)
+    ]
+
+
 def read_cameras(root: str | Path, scene: str) -> dict | None:
     path = Path(root) / scene / "cameras.json"
     if not path.is_file():
@@ -143,6 +150,10 @@ class ViewCheck:
     @property
     def ok(self) -> bool:
         return not self.reasons
+
+    def rejections(self, split: str) -> list[dict]:
+        """One record per reason: split, scene, view, file and reason (the `rejected.json` rows)."""
+        return [{"split": split, "scene": self.scene, "view": self.view, **r} for r in self.reasons]
 
 
 def _take_channels(arr: np.ndarray, name: str, path: Path) -> np.ndarray:

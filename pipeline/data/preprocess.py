@@ -148,12 +148,7 @@ def preprocess(
         "layout": "channels-first (N, C, H, W)",
         "splits": {},
     }
-    jobs = [
-        (split, scene, view)
-        for split, scenes in splits.items()
-        for scene in scenes
-        for view in iv.list_views(root, scene)
-    ]
+    jobs = iv.split_views(root, splits)
     bar = tqdm(jobs, desc="preprocess", unit="view", disable=not progress)
     done: dict[str, list[dict]] = {s: [] for s in iv.SPLITS}
     cameras_cache: dict[str, dict | None] = {}
@@ -163,7 +158,7 @@ def preprocess(
             cameras_cache[scene] = iv.read_cameras(root, scene)
         check = iv.read_view(root, scene, view, max_inconsistent_fraction)
         if not check.ok:
-            rejected.extend({"split": split, "scene": scene, "view": view, **r} for r in check.reasons)
+            rejected.extend(check.rejections(split))
             continue
         maps = resize_view(check.maps, height, width)
         maps["fov_x_deg"] = np.float32(_fov(root, scene, view, cameras_cache[scene], default_fov_x_deg))
