@@ -126,9 +126,11 @@ def preprocess(
     max_inconsistent_fraction: float = 0.01,
     default_fov_x_deg: float | None = None,
     progress: bool = True,
+    source: str = "unspecified",
 ) -> PreprocessResult:
     """Validate every view listed by the split files of `root`, resize to (height, width) and write
-    `<out>/<split>_<k>.npz` shards and `<out>/manifest.json`. Returns the manifest and rejections."""
+    `<out>/<split>_<k>.npz` shards and `<out>/manifest.json` (which records `source`, the data's
+    provenance: synthetic or a real dataset). Returns the manifest and rejections."""
     t0 = time.perf_counter()
     root, out = Path(root), Path(out)
     if not root.is_dir():
@@ -141,6 +143,7 @@ def preprocess(
         stale.unlink()
     rejected: list[dict] = []
     manifest: dict = {
+        "source": source,
         "source_root": str(root.resolve()),
         "height": height,
         "width": width,

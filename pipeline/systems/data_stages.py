@@ -76,9 +76,8 @@ def run_preprocess(cfg: DictConfig) -> dict[str, float]:
             float(p.max_inconsistent_fraction),
             ivc.fov_x_deg,
             progress=bool(cfg.progress),
+            source=source,
         )
-        result.manifest["source"] = source
-        (Path(cfg.out_dir) / "manifest.json").write_text(json.dumps(result.manifest, indent=1))
         report.mkdir(parents=True, exist_ok=True)
         (report / "rejected.json").write_text(
             json.dumps({"source": source, "root": str(root), "rejected": result.rejected}, indent=1) + "\n"
