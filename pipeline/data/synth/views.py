@@ -6,6 +6,7 @@ depth is z-depth in millimetres (inf on misses), normals are unit view-space vec
 
 from __future__ import annotations
 
+import contextlib
 import math
 import time
 from dataclasses import dataclass
@@ -142,19 +143,15 @@ def camera_is_usable(scene, camera: Camera, min_valid: float = 0.6, min_median_d
 
 
 class Timer:
-    """Accumulates wall seconds per named phase."""
+    """Accumulates wall seconds per named phase: `with timer("render"): ...`."""
 
     def __init__(self):
         self.seconds: dict[str, float] = {}
 
+    @contextlib.contextmanager
     def __call__(self, name: str):
-        timer = self
-
-        class _Span:
-            def __enter__(self):
-                self.t0 = time.perf_counter()
-
-            def __exit__(self, *exc):
-                timer.seconds[name] = timer.seconds.get(name, 0.0) + time.perf_counter() - self.t0
-
-        return _Span()
+        t0 = time.perf_counter()
+        try:
+            yield
+        finally:
+            self.seconds[name] = self.seconds.get(name, 0.0) + time.perf_counter() - t0
