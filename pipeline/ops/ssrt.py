@@ -4,10 +4,12 @@ A ray p + t w (view space) is clipped to the near plane and to the image, projec
 P(s) = P0 + s (P1 - P0), s in [0, 1], along which its z-depth is perspective-correct:
 1/z(s) = (1 - s)/z0 + s/z1. The march visits the pixels the segment crosses, in order, and reports
 the first one where the ray *passes behind* the surface (its depth over the pixel reaches the depth map)
-while *facing* it (n . w < 0). The gap is how far behind the surface the ray already was when it
-entered that pixel: 0 when it crosses the surface inside the pixel (a confident hit), large when it
-slipped behind a foreground object's silhouette (DESIGN.md: u = tanh(k gap) then hands the ray to the
-out-of-view branch).
+while *facing* it (n . w < 0) and does not cross the pixel's facet (the plane through the pixel's centre
+point with its normal) only further ahead: a depth map is a staircase, and a ray grazing a plane dips
+behind its steps long before it reaches the plane. The gap is 0 when the ray crosses the facet inside
+the pixel (a confident hit); otherwise it is how far behind the surface the ray already was when it
+entered the pixel, large when it slipped behind a foreground object's silhouette (DESIGN.md:
+u = tanh(k gap) then hands the ray to the out-of-view branch).
 
 Speed: a min-depth pyramid lets a ray skip a whole 2^L x 2^L cell when its depth over the cell stays in
 front of the nearest surface in it; the level goes up after every skip and down when a cell cannot be
@@ -23,7 +25,7 @@ import math
 
 import torch
 
-from pipeline.ops.camera import project
+from pipeline.ops.camera import backproject, project
 
 NEAR = 1e-3  # metres: rays are clipped to z-depth >= NEAR
 
@@ -72,6 +74,7 @@ def trace(
     offsets = torch.tensor([0] + [lv.numel() for lv in levels], device=dev).cumsum(0)[:-1]
     top = len(levels) - 1 if max_level is None else min(len(levels) - 1, int(max_level))
     n_flat = normal.permute(0, 2, 3, 1).reshape(-1, 3).to(dt)
+    points = backproject(torch.where(torch.isfinite(clean), clean, torch.zeros_like(clean)), fov_x).reshape(-1, 3)
 
     # --- clip the 3-D ray: in front of the near plane, within a far distance beyond every surface ----
     finite = clean[torch.isfinite(clean)]
@@ -175,13 +178,27 @@ def trace(
         if li.numel():
             cy_l, cx_l = take(cy, 0, li), take(cx, 0, li)
             pix_flat = (take(b_of, 0, li) * H + cy_l) * W + cx_l
-            facing = (take(n_flat, 0, pix_flat) * take(d, 0, take(ids, 0, li))).sum(-1) < 0
+            rid = take(ids, 0, li)
+            n_l, d_l = take(n_flat, 0, pix_flat), take(d, 0, rid)
+            nd = (n_l * d_l).sum(-1)
+            # Where does the ray cross the pixel's facet (the plane through its centre point, with its
+            # normal)? Ahead of this pixel: the ray only grazes the depth map's staircase and goes on.
+            o_l = take(o, 0, rid)
+            t_star = ((take(points, 0, pix_flat) - o_l) * n_l).sum(-1) / torch.where(nd < 0, nd, -torch.ones_like(nd))
+            q_star, _ = proj(o_l + t_star.clamp(min=0).unsqueeze(-1) * d_l)
+            st_l = take(st, 0, li)
+            len2 = (st_l[:, 2:4] * st_l[:, 2:4]).sum(-1).clamp(min=1e-12)
+            s_star = ((q_star - st_l[:, 0:2]) * st_l[:, 2:4]).sum(-1) / len2  # crossing's segment parameter
+            beyond = (t_star > 0) & (s_star > take(s_out, 0, li))
+            crossing = (t_star > 0) & ~beyond & (s_star >= st_l[:, 8])
+            facing = (nd < 0) & ~beyond
             fi = li[facing]
             done[fi] = True
             k = ids[fi]
             hit[k] = True
             pixel[k, 0], pixel[k, 1] = cy_l[facing], cx_l[facing]
-            gap[k] = (1.0 / torch.maximum(iz_in[fi], iz_out[fi]) - 1.0 / iz_cell[fi]).clamp(min=0)
+            behind_gap = (1.0 / torch.maximum(iz_in[fi], iz_out[fi]) - 1.0 / iz_cell[fi]).clamp(min=0)
+            gap[k] = torch.where(crossing[facing], torch.zeros_like(behind_gap), behind_gap)
         advance = ~behind | (leaf & ~done)
         st[:, 8] = torch.where(advance, s_out, st[:, 8])
         # clear: one level up (to skip more next time); blocked above the pixel level: one level down

@@ -20,8 +20,8 @@ def test_hits_agree_with_exact_intersection(fov):
     pix, hit, gap = ssrt.trace(depth.float(), normal.float(), fov, o.float(), wi.float())
     score = score_ssrt(scene, depth, normal, fov, o, wi, pix, hit, gap)
     assert score["recall"] >= 0.95, score
-    assert score["precision_confident"] >= 0.95, score
-    assert score["unavoidable_wrong_flagged"] >= 0.75, score
+    assert score["precision_confident"] >= 0.97, score
+    assert score["unavoidable_wrong_flagged"] >= 0.80, score
     assert (gap >= 0).all() and torch.isfinite(gap).all()
     assert (pix[hit] >= 0).all() and (pix[hit, 0] < 120).all() and (pix[hit, 1] < 160).all()
     assert (pix[~hit] == -1).all() and (gap[~hit] == 0).all()
