@@ -14,9 +14,9 @@ u = tanh(k gap) then hands the ray to the out-of-view branch).
 Speed: a min-depth pyramid lets a ray skip a whole 2^L x 2^L cell when its depth over the cell stays in
 front of the nearest surface in it; the level goes up after every skip and down when a cell cannot be
 skipped, so free space costs O(log size) steps instead of one step per pixel. All rays advance together
-in tensor operations; finished rays are masked out and leave the working set once a quarter of it has
-finished (no per-ray Python, little work on finished rays). Results equal a pixel-by-pixel march with
-the same hit rule. No gradients flow (the outputs are indices, a flag and a gap used as a confidence).
+in one elementwise step function (fusable by torch.compile); finished rays are masked out and leave
+the working set once a quarter of it has finished (no per-ray Python, little work on finished rays).
+Results equal a pixel-by-pixel march with the same hit rule. No gradients flow (the outputs are indices, a flag and a gap used as a confidence).
 """
 
 from __future__ import annotations
@@ -42,6 +42,76 @@ def min_pyramid(depth: torch.Tensor) -> list[torch.Tensor]:
     return levels
 
 
+def _step_geometry(st: torch.Tensor, s: torch.Tensor, flat_small: torch.Tensor, scale: torch.Tensor):
+    """Cell (A, 2) entered at a level with cells of `scale` (A,) pixels from the position at s, and the s
+    where the ray leaves it. On a boundary the cell ahead is taken per axis (floor moving +, ceil - 1
+    moving -): a forward nudge would vanish below float32 resolution on the slow axis and stall the ray.
+    Every exit lies at least 1e-6 ahead, so the march always progresses."""
+    scale = scale.unsqueeze(-1)
+    p0, dd, idd = st[:, 0:2], st[:, 2:4], st[:, 4:6]
+    q = torch.addcmul(p0, s.unsqueeze(-1), dd) / scale
+    neg = dd < 0
+    cell = torch.where(neg, torch.ceil(q) - 1, torch.floor(q))
+    t_axis = ((cell + (~neg).to(st.dtype)) * scale - p0) * idd
+    t_axis = t_axis.masked_fill(flat_small, math.inf)
+    return cell.int(), torch.maximum(t_axis.amin(-1), s + 1e-6).clamp(max=1.0)
+
+
+def _step(st, s, flat_small, lvl, ray, b_of, live, res, scene, top: int, fov_x: float):
+    """One traversal step for A working rays, elementwise apart from gathers (so it fuses when compiled).
+
+    st (A, 8) per-ray segment constants (see `trace`), s (A,) position on the segment, flat_small (A, 2) degenerate axes, lvl (A,) level,
+    ray (A, 6) view-space origin and unit direction, b_of (A,) image, live (A,) unfinished, res (A, 3)
+    hit row, col (-1 before a hit) and gap; scene is (level_table, level_scale, inv_levels, n_flat,
+    points, H, W). Returns the new s, level, live flags and res."""
+    level_table, level_scale, inv_levels, n_flat, points, H, W = scene
+    take = torch.index_select  # plain row gathers: leaner than advanced indexing on CPU
+    tab = take(level_table, 0, lvl)
+    rows, cols = tab[:, 0], tab[:, 1]
+    cell, s_out = _step_geometry(st, s, flat_small, take(level_scale, 0, lvl))
+    cx = torch.minimum(cell[:, 0].clamp(min=0), cols - 1)
+    cy = torch.minimum(cell[:, 1].clamp(min=0), rows - 1)
+    iz_cell = take(inv_levels, 0, tab[:, 2] + (b_of * rows + cy) * cols + cx)
+    iz_in = torch.addcmul(st[:, 6], s, st[:, 7])
+    iz_out = torch.addcmul(st[:, 6], s_out, st[:, 7])
+    behind = torch.minimum(iz_in, iz_out) <= iz_cell  # the ray's far end reaches the nearest surface
+    leaf = behind & (lvl == 0) & live
+    # At a pixel: does the ray face the surface, and where does it cross the pixel's facet (the plane
+    # through its centre point, with its normal)? Ahead of this pixel: the ray only grazes the depth
+    # map's staircase and goes on. Inside it: a confident hit (gap 0). Before it: the ray slipped behind.
+    pix_flat = ((b_of * H + cy) * W + cx).where(leaf, torch.zeros_like(cx))
+    o, d = ray[:, 0:3], ray[:, 3:6]
+    n = take(n_flat, 0, pix_flat)
+    nd = (n * d).sum(-1)
+    t_star = ((take(points, 0, pix_flat) - o) * n).sum(-1) / torch.where(nd < 0, nd, -torch.ones_like(nd))
+    x = o + t_star.clamp(min=0).unsqueeze(-1) * d
+    q, _ = project(torch.cat([x[:, :2], x[:, 2:].clamp(max=-NEAR)], -1), fov_x, H, W)
+    dd = st[:, 2:4]
+    s_star = ((q - st[:, 0:2]) * dd).sum(-1) / (dd * dd).sum(-1).clamp(min=1e-12)  # the crossing's s
+    beyond = (t_star > 0) & (s_star > s_out)
+    crossing = (t_star > 0) & ~beyond & (s_star >= s)
+    done = leaf & (nd < 0) & ~beyond
+    gap = torch.where(crossing, 0.0, (1.0 / torch.maximum(iz_in, iz_out) - 1.0 / iz_cell).clamp(min=0))
+    # clear: past the cell and one level up (to skip more next time); blocked above the pixel level: one
+    # level down; a non-hit pixel: past it
+    advance = ~behind | (leaf & ~done)
+    s_new = torch.where(advance, s_out, s)
+    lvl = (lvl + (~behind).int() - (behind & (lvl > 0)).int()).clamp(max=top)
+    res = torch.where(done.unsqueeze(-1), torch.stack([cy.to(st.dtype), cx.to(st.dtype), gap], -1), res)
+    return s_new, lvl, live & ~done & (s_new < 1), res
+
+
+_COMPILED: dict[str, object] = {}
+
+
+def _step_kernel(compiled: bool):
+    if not compiled:
+        return _step
+    if "step" not in _COMPILED:  # one fused kernel; the working set shrinks as rays finish: dynamic shapes
+        _COMPILED["step"] = torch.compile(_step, dynamic=True)
+    return _COMPILED["step"]
+
+
 @torch.no_grad()
 def trace(
     depth: torch.Tensor,
@@ -52,6 +122,7 @@ def trace(
     batch_index: torch.Tensor | None = None,
     max_steps: int = 4096,
     max_level: int | None = None,
+    compiled: bool = False,
 ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
     """March rays across depth maps.
 
@@ -61,7 +132,8 @@ def trace(
     (ray depth minus surface depth on entering the hit pixel, >= 0; 0 on misses). Rays that leave the
     image, reach the near plane or never pass behind a facing surface are misses. max_level caps the
     pyramid level a ray may skip at (0 = a plain pixel-by-pixel march, for comparison); the hits do not
-    depend on it."""
+    depend on it. compiled=True runs each step as one fused torch.compile kernel (about 2.5x faster on
+    CPU; the first call compiles for tens of seconds and needs a C++ compiler, or Triton on CUDA)."""
     B, H, W = depth.shape
     dev, dt = depth.device, depth.dtype
     N = origin.shape[0]
@@ -122,86 +194,46 @@ def trace(
     # of max(1/z) = 1/min(z), so a step needs no division.
     inv_levels = torch.cat([(1.0 / lv).reshape(-1) for lv in levels])  # inf -> 0: never "behind"
     # per level: rows, cols, offset into inv_levels, 2^level -- one gather per step instead of four
-    level_table = torch.cat([sizes, offsets[:, None], (2 ** torch.arange(len(levels), device=dev))[:, None]], 1)
+    level_table = torch.cat([sizes, offsets[:, None], (2 ** torch.arange(len(levels), device=dev))[:, None]], 1).int()
     small = D.abs() <= 1e-12
     inv_d = 1.0 / torch.where(small, torch.ones_like(D), D)
     ids = torch.nonzero(ok).squeeze(-1)
-    # columns: P0x P0y Dx Dy 1/Dx 1/Dy inv0 (inv1 - inv0) s
-    st = torch.cat([P0, D, inv_d, inv0[:, None], (inv1 - inv0)[:, None], torch.zeros(N, 1, dtype=dt, device=dev)], 1)[
-        ids
-    ]
+    # per-ray constants, columns: P0x P0y Dx Dy 1/Dx 1/Dy inv0 (inv1 - inv0); the position s is separate
+    st = torch.cat([P0, D, inv_d, inv0[:, None], (inv1 - inv0)[:, None]], 1)[ids]
     flat_small = small[ids]
-    lvl = torch.zeros(len(ids), dtype=torch.long, device=dev)
-
-    def step_geometry(st, flat_small, scale):
-        """Cell (A, 2) entered at level lvl from the position at s, and the s where the ray leaves it. On a
-        boundary the cell ahead is taken per axis (floor moving +, ceil - 1 moving -): a forward nudge would
-        vanish below float32 resolution on the slow axis and stall the ray. Every exit lies at least 1e-6
-        ahead, so the march always progresses."""
-        scale = scale.unsqueeze(-1)
-        p0, dd, idd, s = st[:, 0:2], st[:, 2:4], st[:, 4:6], st[:, 8]
-        q = torch.addcmul(p0, s.unsqueeze(-1), dd) / scale
-        neg = dd < 0
-        cell = torch.where(neg, torch.ceil(q) - 1, torch.floor(q))
-        t_axis = ((cell + (~neg).to(dt)) * scale - p0) * idd
-        t_axis = t_axis.masked_fill(flat_small, math.inf)
-        return cell.long(), torch.maximum(t_axis.amin(-1), s + 1e-6).clamp(max=1.0)
+    lvl = torch.zeros(len(ids), dtype=torch.int32, device=dev)
 
     # start just past the origin's own pixel (its surface is the ray's origin, not a hit); a ray whose
     # origin projects outside the image starts where it enters it
-    _, s_first = step_geometry(st, flat_small, torch.ones(len(ids), dtype=dt, device=dev))
-    st[:, 8] = torch.where(starts_inside[ids], s_first, torch.zeros_like(s_first))
-    b_of = bidx[ids]
-    live = st[:, 8] < 1
-    level_scale = level_table[:, 3].to(dt)
-    take = torch.index_select  # plain row gathers: leaner than advanced indexing on CPU
+    _, s_first = _step_geometry(
+        st, torch.zeros(len(ids), dtype=dt, device=dev), flat_small, torch.ones(len(ids), dtype=dt, device=dev)
+    )
+    s = torch.where(starts_inside[ids], s_first, torch.zeros_like(s_first))
+    b_of = bidx[ids].int()
+    live = s < 1
+    ray = torch.cat([o, d], 1)[ids]
+    # per working ray: hit row, col (-1 = none yet) and gap, written out when the ray leaves the working set
+    res = torch.cat(
+        [torch.full((len(ids), 2), -1.0, dtype=dt, device=dev), torch.zeros(len(ids), 1, dtype=dt, device=dev)], 1
+    )
+    scene = (level_table, level_table[:, 3].to(dt), inv_levels, n_flat, points, H, W)
+    step = _step_kernel(compiled)
+
+    def write_out(rows):
+        k, r = ids[rows], res[rows]
+        pixel[k], hit[k], gap[k] = r[:, :2].long(), r[:, 0] >= 0, r[:, 2]
+
+    take = torch.index_select
     for _ in range(max_steps):
         n_live = int(live.sum())
         if n_live == 0:
             break
         if n_live < 0.75 * live.numel():  # compact by one shared index, only once enough rays have finished
+            write_out(~live)
             keep = torch.nonzero(live).squeeze(-1)
-            ids, st, flat_small = take(ids, 0, keep), take(st, 0, keep), take(flat_small, 0, keep)
-            lvl, b_of, live = take(lvl, 0, keep), take(b_of, 0, keep), take(live, 0, keep)
-        tab = take(level_table, 0, lvl)
-        rows, cols = tab[:, 0], tab[:, 1]
-        cell, s_out = step_geometry(st, flat_small, take(level_scale, 0, lvl))
-        cx = torch.minimum(cell[:, 0].clamp(min=0), cols - 1)
-        cy = torch.minimum(cell[:, 1].clamp(min=0), rows - 1)
-        iz_cell = take(inv_levels, 0, tab[:, 2] + (b_of * rows + cy) * cols + cx)
-        iz_in = torch.addcmul(st[:, 6], st[:, 8], st[:, 7])
-        iz_out = torch.addcmul(st[:, 6], s_out, st[:, 7])
-        behind = torch.minimum(iz_in, iz_out) <= iz_cell  # the ray's far end reaches the nearest surface
-        leaf = behind & (lvl == 0) & live
-        li = torch.nonzero(leaf).squeeze(-1)
-        done = torch.zeros_like(leaf)
-        if li.numel():
-            cy_l, cx_l = take(cy, 0, li), take(cx, 0, li)
-            pix_flat = (take(b_of, 0, li) * H + cy_l) * W + cx_l
-            rid = take(ids, 0, li)
-            n_l, d_l = take(n_flat, 0, pix_flat), take(d, 0, rid)
-            nd = (n_l * d_l).sum(-1)
-            # Where does the ray cross the pixel's facet (the plane through its centre point, with its
-            # normal)? Ahead of this pixel: the ray only grazes the depth map's staircase and goes on.
-            o_l = take(o, 0, rid)
-            t_star = ((take(points, 0, pix_flat) - o_l) * n_l).sum(-1) / torch.where(nd < 0, nd, -torch.ones_like(nd))
-            q_star, _ = proj(o_l + t_star.clamp(min=0).unsqueeze(-1) * d_l)
-            st_l = take(st, 0, li)
-            len2 = (st_l[:, 2:4] * st_l[:, 2:4]).sum(-1).clamp(min=1e-12)
-            s_star = ((q_star - st_l[:, 0:2]) * st_l[:, 2:4]).sum(-1) / len2  # crossing's segment parameter
-            beyond = (t_star > 0) & (s_star > take(s_out, 0, li))
-            crossing = (t_star > 0) & ~beyond & (s_star >= st_l[:, 8])
-            facing = (nd < 0) & ~beyond
-            fi = li[facing]
-            done[fi] = True
-            k = ids[fi]
-            hit[k] = True
-            pixel[k, 0], pixel[k, 1] = cy_l[facing], cx_l[facing]
-            behind_gap = (1.0 / torch.maximum(iz_in[fi], iz_out[fi]) - 1.0 / iz_cell[fi]).clamp(min=0)
-            gap[k] = torch.where(crossing[facing], torch.zeros_like(behind_gap), behind_gap)
-        advance = ~behind | (leaf & ~done)
-        st[:, 8] = torch.where(advance, s_out, st[:, 8])
-        # clear: one level up (to skip more next time); blocked above the pixel level: one level down
-        lvl = (lvl + (~behind).long() - (behind & (lvl > 0)).long()).clamp(max=top)
-        live = live & ~done & (st[:, 8] < 1)
+            ids, st, s, flat_small, ray, lvl, b_of, live, res = (
+                take(x, 0, keep) for x in (ids, st, s, flat_small, ray, lvl, b_of, live, res)
+            )
+        s, lvl, live, res = step(st, s, flat_small, lvl, ray, b_of, live, res, scene, top, fov_x)
+    write_out(torch.ones_like(live))
     return pixel, hit, gap

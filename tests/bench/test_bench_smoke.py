@@ -25,6 +25,6 @@ def test_equal_time_ratio_interpolates_in_log_log():
 
 
 def test_ssrt_bench_runs_small():
-    report = ssrt.run(resolutions=((24, 32),), levels=(0, None), rays_per_pixel=2, repeats=1)
+    report = ssrt.run(resolutions=((24, 32),), levels=(0, None), rays_per_pixel=2, repeats=1, compiled=(False,))
     assert len(report["results"]) == 2 and all(r["rays_per_second"] > 0 for r in report["results"])
     assert report["results"][0]["recall"] == report["results"][1]["recall"]
