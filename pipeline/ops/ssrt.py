@@ -16,7 +16,8 @@ front of the nearest surface in it; the level goes up after every skip and down 
 skipped, so free space costs O(log size) steps instead of one step per pixel. All rays advance together
 in one elementwise step function (fusable by torch.compile); finished rays are masked out and leave
 the working set once a quarter of it has finished (no per-ray Python, little work on finished rays).
-Results equal a pixel-by-pixel march with the same hit rule. No gradients flow (the outputs are indices, a flag and a gap used as a confidence).
+Results equal a pixel-by-pixel march with the same hit rule. No gradients flow (the outputs are
+indices, a flag and a gap used as a confidence).
 """
 
 from __future__ import annotations
@@ -60,10 +61,10 @@ def _step_geometry(st: torch.Tensor, s: torch.Tensor, flat_small: torch.Tensor, 
 def _step(st, s, flat_small, lvl, ray, b_of, live, res, scene, top: int, fov_x: float):
     """One traversal step for A working rays, elementwise apart from gathers (so it fuses when compiled).
 
-    st (A, 8) per-ray segment constants (see `trace`), s (A,) position on the segment, flat_small (A, 2) degenerate axes, lvl (A,) level,
-    ray (A, 6) view-space origin and unit direction, b_of (A,) image, live (A,) unfinished, res (A, 3)
-    hit row, col (-1 before a hit) and gap; scene is (level_table, level_scale, inv_levels, n_flat,
-    points, H, W). Returns the new s, level, live flags and res."""
+    st (A, 8) per-ray segment constants (see `trace`), s (A,) position on the segment, flat_small (A, 2)
+    degenerate axes, lvl (A,) level, ray (A, 6) view-space origin and unit direction, b_of (A,) image,
+    live (A,) unfinished, res (A, 3) hit row, col (-1 before a hit) and gap; scene is (level_table,
+    level_scale, inv_levels, n_flat, points, H, W). Returns the new s, level, live flags and res."""
     level_table, level_scale, inv_levels, n_flat, points, H, W = scene
     take = torch.index_select  # plain row gathers: leaner than advanced indexing on CPU
     tab = take(level_table, 0, lvl)
