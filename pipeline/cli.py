@@ -1,4 +1,4 @@
-"""`invrender` command line: dataset checks and figures (later stages add their own subcommands)."""
+"""`invrender` command line: dataset checks, figures, and MaterialNet predictions on your own images."""
 
 from __future__ import annotations
 
@@ -43,6 +43,15 @@ def _sheet(args) -> int:
     return 0
 
 
+def _predict(args) -> int:
+    from pipeline.systems.material_predict import predict_files
+
+    written = predict_files(args.inputs, args.out, args.checkpoint)
+    for path in written:
+        print(path)
+    return 0
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(prog="invrender", description=__doc__)
     sub = parser.add_subparsers(dest="command", required=True)
@@ -56,12 +65,25 @@ def main(argv: list[str] | None = None) -> int:
     s.add_argument("--split", default="test", choices=("train", "val", "test"))
     s.add_argument("--views", type=int, default=4)
     s.set_defaults(func=_sheet)
+    p = sub.add_parser(
+        "predict",
+        help="albedo, normal, depth and material maps of your own images (EXR = HDR; PNG/JPG = sRGB, gamma 2.2)",
+    )
+    p.add_argument("inputs", nargs="+", help="images: .exr (linear HDR), .png, .jpg")
+    p.add_argument("--out", required=True, help="folder for <name>_{albedo,normal,depth,material}.exr + preview")
+    p.add_argument(
+        "--checkpoint",
+        default=str(Path("outputs") / "train_material" / "model.pt"),
+        help="model.pt exported by train_material, or a Lightning .ckpt (default: %(default)s)",
+    )
+    p.set_defaults(func=_predict)
     args = parser.parse_args(argv)
     from pipeline.data.interiorverse import DatasetError
+    from pipeline.systems.material_predict import PredictError
 
     try:
         return args.func(args)
-    except DatasetError as exc:
+    except (DatasetError, PredictError) as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 2
 

@@ -78,6 +78,20 @@ def micro_root(micro_stage_paths) -> Path:
 
 
 @pytest.fixture(scope="session")
+def micro_shards(micro_stage_paths, tmp_path_factory, worker_id) -> Path:
+    """Read-only preprocess shards of the micro dataset (the `data_dir` of the training stages)."""
+    shared = _shared_dir(tmp_path_factory, worker_id)
+    base = shared / "micro_shards"
+    with FileLock(str(shared / "micro_shards.lock")):
+        if not (base / "manifest.json").exists():
+            from pipeline.data.preprocess import preprocess
+
+            root = micro_stage_paths["outputs"] / "synthesize"
+            preprocess(root, base, height=48, width=64, shard_size=4, progress=False, source="synthetic")
+    return base
+
+
+@pytest.fixture(scope="session")
 def mitsuba_variant():
     """Set a Mitsuba variant in this test process (llvm when it works here, else scalar)."""
     from pipeline.data.synth import mitsuba_backend as mb

@@ -8,18 +8,27 @@ import lightning as L
 import torch
 from torch.utils.data import DataLoader
 
-from pipeline.data.datasets import ShardDataset, collate_views
+from pipeline.data.datasets import ShardDataset, collate_views, flip_views
 
 
 class InteriorVerseDataModule(L.LightningDataModule):
-    """Loads `<root>/manifest.json` shards; the train loader shuffles with a seeded generator."""
+    """Loads `<root>/manifest.json` shards; the train loader shuffles with a seeded generator and, with
+    `augment`, mirrors views left-right at random (seeded)."""
 
     def __init__(
-        self, root: str | Path, batch_size: int = 8, num_workers: int = 0, seed: int = 0, lighting: bool = True
+        self,
+        root: str | Path,
+        batch_size: int = 8,
+        num_workers: int = 0,
+        seed: int = 0,
+        lighting: bool = True,
+        augment: bool = False,
     ):
         super().__init__()
+        if batch_size < 1:
+            raise ValueError(f"batch_size={batch_size}: must be >= 1")
         self.root, self.batch_size, self.num_workers = Path(root), int(batch_size), int(num_workers)
-        self.seed, self.lighting = int(seed), lighting
+        self.seed, self.lighting, self.augment = int(seed), lighting, augment
         self.splits: dict[str, ShardDataset] = {}
 
     def setup(self, stage: str | None = None) -> None:
@@ -28,19 +37,34 @@ class InteriorVerseDataModule(L.LightningDataModule):
             if split not in self.splits:
                 self.splits[split] = ShardDataset(self.root, split, lighting=self.lighting)
 
-    def _loader(self, split: str, shuffle: bool) -> DataLoader:
+    def _loader(self, split: str, shuffle: bool, augment: bool = False, batch_size: int | None = None) -> DataLoader:
+        if split not in self.splits:
+            self.setup({"train": "fit", "val": "validate", "test": "test"}[split])
+        if len(self.splits[split]) == 0:
+            raise ValueError(f"{self.root}: split {split!r} has no views")
         gen = torch.Generator().manual_seed(self.seed) if shuffle else None
+        collate = collate_views
+        if augment:
+            flip_gen = torch.Generator().manual_seed(self.seed + 1)
+
+            def collate(items):
+                return flip_views(collate_views(items), flip_gen)
+
         return DataLoader(
             self.splits[split],
-            batch_size=self.batch_size,
+            batch_size=batch_size or self.batch_size,
             shuffle=shuffle,
             generator=gen,
             num_workers=self.num_workers,
-            collate_fn=collate_views,
+            collate_fn=collate,
         )
 
+    def plain_loader(self, split: str, batch_size: int | None = None) -> DataLoader:
+        """In order, no augmentation (statistics, figures)."""
+        return self._loader(split, False, batch_size=batch_size)
+
     def train_dataloader(self) -> DataLoader:
-        return self._loader("train", True)
+        return self._loader("train", True, augment=self.augment)
 
     def val_dataloader(self) -> DataLoader:
         return self._loader("val", False)

@@ -93,3 +93,21 @@ def collate_views(items: list[dict]) -> dict:
     if all("light" in it for it in items):
         batch["light"] = [it["light"] for it in items]
     return batch
+
+
+def flip_views(batch: dict, generator: torch.Generator) -> dict:
+    """Mirror each view of a collated batch left-right with probability 1/2, in place of the maps: the
+    normal's x (view space, +x right) changes sign; per-view lighting probes are not mirrored, so a
+    batch that carries them is returned unchanged."""
+    if "light" in batch:
+        return batch
+    flip = torch.rand(batch["im"].shape[0], generator=generator) < 0.5
+    if not flip.any():
+        return batch
+    out = dict(batch)
+    for k in MAP_KEYS:
+        x = batch[k].clone()
+        x[flip] = x[flip].flip(-1)
+        out[k] = x
+    out["normal"][flip, 0] *= -1
+    return out

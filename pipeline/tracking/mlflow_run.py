@@ -90,10 +90,13 @@ def activate_experiment(cfg: DictConfig) -> None:
 
 
 @contextlib.contextmanager
-def stage_run(stage: str, cfg: DictConfig, tags: dict[str, str] | None = None) -> Iterator:
+def stage_run(
+    stage: str, cfg: DictConfig, tags: dict[str, str] | None = None, system_metrics: bool = False
+) -> Iterator:
     """Open an MLflow run named `<stage>-<profile>` tagged with stage, profile, git sha and DVC_EXP_NAME;
     log the resolved config (params + `config/<stage>.yaml` artifact). Nested when a parent run is active
-    (Hydra sweeps). Yields the active `mlflow` run."""
+    (Hydra sweeps). system_metrics samples CPU/memory into the run while it is open. Yields the active
+    `mlflow` run."""
     import mlflow
 
     activate_experiment(cfg)
@@ -106,7 +109,12 @@ def stage_run(stage: str, cfg: DictConfig, tags: dict[str, str] | None = None) -
         **(tags or {}),
     }
     resolved = OmegaConf.to_container(cfg, resolve=True)
-    with mlflow.start_run(run_name=f"{stage}-{profile}", nested=mlflow.active_run() is not None, tags=all_tags) as run:
+    with mlflow.start_run(
+        run_name=f"{stage}-{profile}",
+        nested=mlflow.active_run() is not None,
+        tags=all_tags,
+        log_system_metrics=system_metrics or None,
+    ) as run:
         mlflow.log_params(_flatten(resolved))
         mlflow.log_text(OmegaConf.to_yaml(cfg, resolve=True), f"config/{stage}.yaml")
         yield run

@@ -28,3 +28,17 @@ def test_ssrt_bench_runs_small():
     report = ssrt.run(resolutions=((24, 32),), levels=(0, None), rays_per_pixel=2, repeats=1, compiled=(False,))
     assert len(report["results"]) == 2 and all(r["rays_per_second"] > 0 for r in report["results"])
     assert report["results"][0]["recall"] == report["results"][1]["recall"]
+
+
+@pytest.mark.slow
+def test_material_net_bench_runs_small(micro_shards, tmp_path):
+    from pipeline.bench import material_net
+
+    report = material_net.run(
+        backbones=("small",), resolutions=((24, 32),), repeats=1, train_seconds=2.0, data_dir=str(micro_shards)
+    )
+    (row,) = report["results"]
+    assert row["parameters"] > 0 and row["speed"][0]["images_per_second"] > 0
+    assert row["accuracy"]["steps"] >= 1 and row["accuracy"]["normal_angle_deg"] > 0
+    material_net.plot(report, tmp_path / "m.png")
+    assert (tmp_path / "m.png").stat().st_size > 5_000

@@ -1,0 +1,175 @@
+"""MaterialNet (the paper's MGNet): one encoder, four decoders with skip links.
+
+Input: an HDR image (B, 3, H, W), linear radiance in any units. Outputs at the input resolution:
+albedo (B, 3, H, W) in [0, 1], normal (B, 3, H, W) unit view-space vectors (+z towards the camera),
+material (B, 2, H, W) roughness and metallic in [0, 1], depth (B, 1, H, W) positive z-depth in arbitrary
+scale (losses and metrics fit the scale by least squares, as a single image fixes depth only up to scale).
+
+Backbones: `densenet121` (the paper), `resnet34`, and `small` (a plain strided CNN sized for a CPU).
+ImageNet weights cannot be downloaded here; `pretrained_path` loads a torchvision state dict from disk.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import torch
+from torch import nn
+from torch.nn import functional as F
+
+HEADS = {"albedo": 3, "normal": 3, "material": 2, "depth": 1}
+
+
+def normalize_input(im: torch.Tensor) -> torch.Tensor:
+    """HDR (B, 3, H, W) -> network input: divided by the image's mean (exposure invariance) and
+    log-compressed, so highlights hundreds of times the mean stay in a trainable range."""
+    scale = im.clamp(min=0).mean(dim=(1, 2, 3), keepdim=True).clamp(min=1e-6)
+    return torch.log1p(im.clamp(min=0) / scale)
+
+
+def _conv(cin: int, cout: int, stride: int = 1) -> nn.Sequential:
+    return nn.Sequential(nn.Conv2d(cin, cout, 3, stride, 1, bias=False), nn.BatchNorm2d(cout), nn.ReLU(inplace=True))
+
+
+class SmallEncoder(nn.Module):
+    """Five stride-2 stages (features at 1/2 .. 1/32) of two 3x3 convolutions each."""
+
+    def __init__(self, widths=(16, 32, 64, 96, 128)):
+        super().__init__()
+        stages, cin = [], 3
+        for w in widths:
+            stages.append(nn.Sequential(_conv(cin, w, 2), _conv(w, w)))
+            cin = w
+        self.stages = nn.ModuleList(stages)
+        self.channels = list(widths)
+
+    def forward(self, x: torch.Tensor) -> list[torch.Tensor]:
+        feats = []
+        for stage in self.stages:
+            x = stage(x)
+            feats.append(x)
+        return feats
+
+
+class ResNetEncoder(nn.Module):
+    """torchvision ResNet34 up to layer4: features at 1/2, 1/4, 1/8, 1/16, 1/32."""
+
+    def __init__(self):
+        super().__init__()
+        from torchvision.models import resnet34
+
+        self.net = resnet34(weights=None)
+        self.net.fc = nn.Identity()
+        self.channels = [64, 64, 128, 256, 512]
+
+    def forward(self, x):
+        n = self.net
+        f1 = n.relu(n.bn1(n.conv1(x)))
+        f2 = n.layer1(n.maxpool(f1))
+        f3 = n.layer2(f2)
+        f4 = n.layer3(f3)
+        return [f1, f2, f3, f4, n.layer4(f4)]
+
+
+class DenseNetEncoder(nn.Module):
+    """torchvision DenseNet121 features: 1/2 (conv0), 1/4 (block1), 1/8, 1/16, 1/32 (block4)."""
+
+    def __init__(self):
+        super().__init__()
+        from torchvision.models import densenet121
+
+        self.net = densenet121(weights=None)
+        self.net.classifier = nn.Identity()
+        self.channels = [64, 256, 512, 1024, 1024]
+
+    def forward(self, x):
+        f = self.net.features
+        f1 = f.relu0(f.norm0(f.conv0(x)))
+        f2 = f.denseblock1(f.pool0(f1))
+        f3 = f.denseblock2(f.transition1(f2))
+        f4 = f.denseblock3(f.transition2(f3))
+        f5 = F.relu(f.norm5(f.denseblock4(f.transition3(f4))))
+        return [f1, f2, f3, f4, f5]
+
+
+ENCODERS = {"small": SmallEncoder, "resnet34": ResNetEncoder, "densenet121": DenseNetEncoder}
+
+
+class Decoder(nn.Module):
+    """U-Net decoder: from the deepest feature, upsample x2, concatenate the skip, two convolutions, up
+    to 1/2 resolution; there a 3x3 head with `out` channels (no activation), bilinearly upsampled to
+    the input resolution (full-resolution convolutions would cost most of the network's time)."""
+
+    def __init__(self, enc_channels: list[int], widths: list[int], out: int):
+        super().__init__()
+        skips = enc_channels[:-1][::-1]  # 1/16, 1/8, 1/4, 1/2
+        blocks, cin = [], enc_channels[-1]
+        for skip, w in zip(skips, widths, strict=True):
+            blocks.append(nn.Sequential(_conv(cin + skip, w), _conv(w, w)))
+            cin = w
+        self.blocks = nn.ModuleList(blocks)
+        self.head = nn.Conv2d(cin, out, 3, 1, 1)
+
+    def forward(self, feats: list[torch.Tensor], x: torch.Tensor) -> torch.Tensor:
+        y = feats[-1]
+        for block, skip in zip(self.blocks, feats[:-1][::-1], strict=True):
+            y = F.interpolate(y, size=skip.shape[-2:], mode="bilinear", align_corners=False)
+            y = block(torch.cat([y, skip], 1))
+        return F.interpolate(self.head(y), size=x.shape[-2:], mode="bilinear", align_corners=False)
+
+
+class MaterialNet(nn.Module):
+    """Shared encoder + albedo/normal/material/depth decoders. forward(im (B,3,H,W) HDR) -> dict of maps
+    (see the module docstring)."""
+
+    def __init__(
+        self,
+        backbone: str = "small",
+        decoder_widths: tuple[int, ...] = (96, 64, 48, 32),
+        pretrained_path: str | None = None,
+    ):
+        super().__init__()
+        if backbone not in ENCODERS:
+            raise ValueError(f"model.backbone={backbone!r}: choose one of {sorted(ENCODERS)}")
+        if len(decoder_widths) != 4:
+            raise ValueError(f"model.decoder_widths={list(decoder_widths)}: need 4 widths (1/16 .. 1/2)")
+        self.backbone = backbone
+        self.encoder = ENCODERS[backbone]()
+        if pretrained_path:
+            load_backbone_weights(self.encoder, pretrained_path)
+        self.decoders = nn.ModuleDict(
+            {k: Decoder(self.encoder.channels, list(decoder_widths), c) for k, c in HEADS.items()}
+        )
+
+    def forward(self, im: torch.Tensor) -> dict[str, torch.Tensor]:
+        if im.ndim != 4 or im.shape[1] != 3:
+            raise ValueError(f"MaterialNet expects (B, 3, H, W) images, got {tuple(im.shape)}")
+        x = normalize_input(im)
+        feats = self.encoder(x)
+        raw = {k: dec(feats, x) for k, dec in self.decoders.items()}
+        return {
+            "albedo": torch.sigmoid(raw["albedo"]),
+            "normal": F.normalize(raw["normal"], dim=1, eps=1e-6),
+            "material": torch.sigmoid(raw["material"]),
+            "depth": F.softplus(raw["depth"]) + 1e-3,
+        }
+
+
+def load_backbone_weights(encoder: nn.Module, path: str | Path) -> None:
+    """Load a torchvision ImageNet state dict (e.g. resnet34-*.pth) from disk into the encoder's network,
+    weights only; the classifier is ignored. A file that does not fit the backbone is an error."""
+    path = Path(path)
+    if not path.is_file():
+        raise FileNotFoundError(f"model.pretrained_path={path}: no such file")
+    if not hasattr(encoder, "net"):
+        raise ValueError(f"model.pretrained_path={path}: the `small` backbone has no ImageNet weights")
+    state = torch.load(path, map_location="cpu", weights_only=True)
+    state = {k: v for k, v in state.items() if not k.startswith(("fc.", "classifier."))}
+    missing, unexpected = encoder.net.load_state_dict(state, strict=False)
+    missing = [k for k in missing if not k.startswith(("fc.", "classifier."))]
+    if missing or unexpected:
+        raise ValueError(f"{path}: does not fit the backbone (missing {missing[:3]}, unexpected {unexpected[:3]})")
+
+
+def parameter_count(model: nn.Module) -> int:
+    return sum(p.numel() for p in model.parameters())

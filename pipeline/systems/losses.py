@@ -1,0 +1,117 @@
+"""MaterialNet training losses (DESIGN.md section 5), masked by the dataset's valid-pixel mask.
+
+Every term is a mean over valid pixels of the batch (masked pixels contribute nothing, not even to the
+denominator). Shapes: predictions and ground truth (B, C, H, W), mask (B, 1, H, W) bool.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import torch
+from torch import nn
+
+from pipeline.metrics.synthetic import depth_mask, ls_scale
+
+
+def masked_mean(x: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
+    """Mean of x over the pixels (and channels) where mask is set; 0 (with a graph) if none is."""
+    m = mask.expand_as(x).to(x.dtype)
+    return (x * m).sum() / m.sum().clamp(min=1.0)
+
+
+def albedo_loss(pred, gt, mask):
+    """L2 between log1p albedos: relative errors on dark albedo count as much as on bright."""
+    return masked_mean((torch.log1p(pred) - torch.log1p(gt)) ** 2, mask)
+
+
+def normal_loss(pred, gt, mask):
+    """1 - cos of the angle between predicted and ground-truth unit normals."""
+    return masked_mean(1.0 - (pred * gt).sum(1, keepdim=True), mask)
+
+
+def material_loss(pred, gt, mask):
+    """L2 on roughness and metallic."""
+    return masked_mean((pred - gt) ** 2, mask)
+
+
+def depth_loss(pred, gt, mask):
+    """L2 on log(d + 1) after the per-image least-squares scale of the prediction to the ground truth
+    (metres). The scale is detached: it is the closed-form optimum, so its gradient adds nothing at
+    the optimum and detaching keeps the loss from collapsing the prediction's magnitude."""
+    m = depth_mask(gt, mask)
+    gt = torch.where(m, gt, torch.zeros_like(gt))
+    s = ls_scale(pred.detach(), gt, m)
+    return masked_mean((torch.log1p(s * pred) - torch.log1p(gt)) ** 2, m)
+
+
+class VGGPerceptual(nn.Module):
+    """L1 between VGG16 features (relu1_2, relu2_2, relu3_3) of prediction and ground truth, both masked.
+    Needs ImageNet weights from `weights_path` (a torchvision vgg16 state dict); frozen."""
+
+    LAYERS = (3, 8, 15)
+
+    def __init__(self, weights_path: str | Path):
+        super().__init__()
+        from torchvision.models import vgg16
+
+        path = Path(weights_path)
+        if not path.is_file():
+            raise FileNotFoundError(f"loss.perceptual_weights={path}: no such file")
+        net = vgg16(weights=None)
+        net.load_state_dict(torch.load(path, map_location="cpu", weights_only=True))
+        self.features = net.features[: self.LAYERS[-1] + 1].eval().requires_grad_(False)
+        self.register_buffer("mean", torch.tensor([0.485, 0.456, 0.406]).view(1, 3, 1, 1))
+        self.register_buffer("std", torch.tensor([0.229, 0.224, 0.225]).view(1, 3, 1, 1))
+
+    def forward(self, pred: torch.Tensor, gt: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
+        m = mask.to(pred.dtype)
+        x, y = (pred * m - self.mean) / self.std, (gt * m - self.mean) / self.std
+        loss = pred.new_zeros(())
+        for i, layer in enumerate(self.features):
+            x, y = layer(x), layer(y)
+            if i in self.LAYERS:
+                loss = loss + (x - y).abs().mean()
+        return loss
+
+
+class MaterialLoss(nn.Module):
+    """Weighted sum of the four map losses (+ perceptual terms on albedo and normal when VGG16 weights are
+    given). forward(pred, batch) -> (total, {term: value})."""
+
+    def __init__(
+        self,
+        albedo: float = 1.0,
+        normal: float = 1.0,
+        material: float = 1.0,
+        depth: float = 1.0,
+        perceptual: float = 0.0,
+        perceptual_weights: str | None = None,
+    ):
+        super().__init__()
+        self.weights = {"albedo": albedo, "normal": normal, "material": material, "depth": depth}
+        for k, w in self.weights.items():
+            if not (w >= 0):
+                raise ValueError(f"loss.{k}={w}: weights must be >= 0")
+        self.perceptual_weight = float(perceptual)
+        self.vgg = VGGPerceptual(perceptual_weights) if perceptual_weights and perceptual > 0 else None
+
+    @property
+    def perceptual_on(self) -> bool:
+        return self.vgg is not None
+
+    def forward(self, pred: dict, batch: dict) -> tuple[torch.Tensor, dict[str, torch.Tensor]]:
+        mask = batch["mask"]
+        terms = {
+            "albedo": albedo_loss(pred["albedo"], batch["albedo"], mask),
+            "normal": normal_loss(pred["normal"], batch["normal"], mask),
+            "material": material_loss(pred["material"], batch["material"], mask),
+            "depth": depth_loss(pred["depth"], batch["depth"], mask),
+        }
+        total = sum(self.weights[k] * v for k, v in terms.items())
+        if self.vgg is not None:
+            terms["perceptual"] = self.vgg(pred["albedo"], batch["albedo"], mask) + self.vgg(
+                pred["normal"] * 0.5 + 0.5, batch["normal"] * 0.5 + 0.5, mask
+            )
+            total = total + self.perceptual_weight * terms["perceptual"]
+        return total, terms

@@ -1,0 +1,169 @@
+"""Stage `train_material`: config -> MaterialNet training -> test metrics, baselines, gate, export.
+
+Writes under `out_dir`: checkpoints/best.ckpt and last.ckpt (Lightning), model.pt (the best weights with
+the network config, for `invrender predict`); under `report_dir`: metrics.json and test_maps.png.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import torch
+from hydra.utils import instantiate
+from omegaconf import DictConfig, OmegaConf
+
+from pipeline.data.datamodules import InteriorVerseDataModule
+from pipeline.data.datasets import read_manifest
+from pipeline.metrics.synthetic import depth_mask, ls_scale
+from pipeline.models.material_net import parameter_count
+from pipeline.systems.material import METRICS, MaterialSystem
+from pipeline.systems.material_baselines import MaterialBaselines, accuracy_gate
+from pipeline.systems.material_predict import EXPORT_FORMAT
+from pipeline.tracking import stage_run, write_metrics
+from pipeline.tracking.figures import map_comparison
+
+
+def export_model(system: MaterialSystem, path: Path, input_size: tuple[int, int], depth_scale: float) -> Path:
+    """Plain weights + network config (loadable with torch.load(weights_only=True)), the training
+    resolution (h, w) and the metric depth scale for `invrender predict`."""
+    path.parent.mkdir(parents=True, exist_ok=True)
+    torch.save(
+        {
+            "format": EXPORT_FORMAT,
+            "model": dict(system.hparams["model"]),
+            "input_size": [int(input_size[0]), int(input_size[1])],
+            "depth_scale": float(depth_scale),
+            "state_dict": {k: v.detach().cpu() for k, v in system.net.state_dict().items()},
+        },
+        path,
+    )
+    return path
+
+
+@torch.no_grad()
+def median_depth_scale(system: MaterialSystem, loader) -> float:
+    """Median over views of the least-squares scale that maps the network's depth to metres."""
+    system.eval()
+    scales = []
+    for batch in loader:
+        m = depth_mask(batch["depth"], batch["mask"])
+        pred = system.net(batch["im"].to(system.device))["depth"].cpu().double()
+        gt = torch.where(m, batch["depth"], torch.zeros_like(batch["depth"])).double()
+        s = ls_scale(pred, gt, m).flatten()
+        scales.extend(s[m.flatten(1).any(1)].tolist())
+    if not scales:
+        raise ValueError("validation split has no valid depth pixels; cannot calibrate the depth scale")
+    return float(torch.tensor(scales).median())
+
+
+def _resume_path(cfg: DictConfig, ckpt_dir: Path) -> str | None:
+    resume = cfg.resume
+    if resume in (None, "", "none"):
+        return None
+    path = ckpt_dir / "last.ckpt" if resume == "last" else Path(resume)
+    if not path.is_file():
+        raise FileNotFoundError(f"resume={resume}: no checkpoint at {path}")
+    return str(path)
+
+
+def build_system(cfg: DictConfig) -> MaterialSystem:
+    sched = OmegaConf.select(cfg, "optim.scheduler")
+    return MaterialSystem(
+        model=OmegaConf.to_container(cfg.model.material_net, resolve=True),
+        loss=OmegaConf.to_container(cfg.loss, resolve=True),
+        optimizer=instantiate(cfg.optim.optimizer),
+        scheduler=instantiate(sched) if sched is not None else None,
+        figure_every=int(cfg.figure_every),
+        figure_views=int(cfg.figure_views),
+    )
+
+
+def build_datamodule(cfg: DictConfig) -> InteriorVerseDataModule:
+    return InteriorVerseDataModule(
+        cfg.data_dir,
+        batch_size=int(cfg.batch_size),
+        num_workers=int(cfg.num_workers),
+        seed=int(cfg.seed),
+        lighting=False,
+        augment=bool(cfg.augment),
+    )
+
+
+def run_train_material(cfg: DictConfig) -> dict[str, float]:
+    import lightning as L
+    import mlflow
+    from lightning.pytorch.callbacks import ModelCheckpoint
+    from lightning.pytorch.loggers import MLFlowLogger
+
+    L.seed_everything(int(cfg.seed), workers=True, verbose=False)
+    out, report = Path(cfg.out_dir), Path(cfg.report_dir)
+    ckpt_dir = out / "checkpoints"
+    resume = _resume_path(cfg, ckpt_dir)
+    source = read_manifest(cfg.data_dir).get("source", "unspecified")
+    dm = build_datamodule(cfg)
+    dm.setup("fit")
+    dm.setup("test")
+    baselines = MaterialBaselines.fit(dm.plain_loader("train"))
+    system = build_system(cfg)
+    with stage_run("train_material", cfg, tags={"data_source": source}, system_metrics=bool(cfg.system_metrics)) as run:
+        mlflow.log_params(
+            {
+                "loss.perceptual_on": system.loss.perceptual_on,
+                "model.parameters": parameter_count(system.net),
+            }
+        )
+        logger = MLFlowLogger(
+            experiment_name=mlflow.get_experiment(run.info.experiment_id).name,
+            tracking_uri=mlflow.get_tracking_uri(),
+            run_id=run.info.run_id,
+        )
+        ckpt = ModelCheckpoint(dirpath=ckpt_dir, filename="best", monitor="val/loss", mode="min", save_last=True)
+        trainer = L.Trainer(
+            **OmegaConf.to_container(cfg.trainer, resolve=True),
+            logger=logger,
+            callbacks=[ckpt],
+            default_root_dir=str(out),
+            enable_progress_bar=bool(cfg.progress),
+            enable_model_summary=False,
+        )
+        trainer.fit(system, datamodule=dm, ckpt_path=resume)
+        best = ckpt.best_model_path or ckpt.last_model_path
+        state = torch.load(best, map_location="cpu", weights_only=True)["state_dict"]
+        system.load_state_dict(state)
+        system.baselines = baselines
+        trainer.test(system, datamodule=dm, verbose=False)
+        logged = {k: float(v) for k, v in trainer.callback_metrics.items() if k.startswith("test")}
+        model_metrics = {m: logged[f"test/{m}"] for m in METRICS}
+        base_metrics = {
+            k.removeprefix("test_baseline/"): v for k, v in logged.items() if k.startswith("test_baseline/")
+        }
+        metrics = {
+            **{f"test/{k}": v for k, v in model_metrics.items()},
+            **{f"baseline/{k}": v for k, v in base_metrics.items()},
+            **accuracy_gate(model_metrics, base_metrics, float(cfg.gate_margin)),
+            "epochs": float(trainer.current_epoch),
+            "global_step": float(trainer.global_step),
+            "parameters": float(parameter_count(system.net)),
+        }
+        if ckpt.best_model_score is not None:
+            metrics["best_val_loss"] = float(ckpt.best_model_score)
+        depth_scale = median_depth_scale(system, dm.plain_loader("val"))
+        model_path = export_model(
+            system, out / "model.pt", (dm.splits["train"].height, dm.splits["train"].width), depth_scale
+        )
+        metrics["depth_scale"] = depth_scale
+        write_metrics(report / "metrics.json", metrics)
+        mlflow.log_metrics({k.replace("/", "."): v for k, v in metrics.items()})
+        figure = _test_figure(system, dm, report / "test_maps.png", int(cfg.figure_views))
+        mlflow.log_artifact(str(figure), "figures")
+        mlflow.log_artifact(str(report / "metrics.json"))
+        mlflow.set_tag("model_path", str(model_path.resolve()))
+    return metrics
+
+
+@torch.no_grad()
+def _test_figure(system: MaterialSystem, dm: InteriorVerseDataModule, path: Path, views: int) -> Path:
+    system.eval()
+    batch = next(iter(dm.plain_loader("test", batch_size=max(views, 1))))
+    pred = system.net(batch["im"].to(system.device))
+    return map_comparison({k: v.cpu() for k, v in pred.items()}, batch, path, title="test views")

@@ -1,0 +1,19 @@
+"""DVC stage `train_material`: MaterialNet on the preprocess shards -> outputs/train_material, reports."""
+
+import hydra
+from omegaconf import DictConfig
+
+from pipeline.systems.material_stage import run_train_material
+
+
+def run(cfg: DictConfig) -> dict[str, float]:
+    return run_train_material(cfg)
+
+
+@hydra.main(config_path="../conf", config_name="train_material", version_base="1.3")
+def main(cfg: DictConfig) -> None:
+    run(cfg)
+
+
+if __name__ == "__main__":
+    main()

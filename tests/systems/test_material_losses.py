@@ -1,0 +1,90 @@
+"""MaterialNet losses and metrics: least-squares scale, masking, baselines, the accuracy gate."""
+
+import pytest
+import torch
+
+from pipeline.metrics.synthetic import albedo_mse, depth_log_mse, ls_scale, normal_angle
+from pipeline.systems.losses import MaterialLoss, depth_loss
+from pipeline.systems.material_baselines import BASELINE_MAPS, MaterialBaselines, accuracy_gate
+
+
+def _batch(B=2, H=6, W=8, seed=0):
+    g = torch.Generator().manual_seed(seed)
+    mask = torch.rand(B, 1, H, W, generator=g) > 0.3
+    normal = torch.nn.functional.normalize(torch.randn(B, 3, H, W, generator=g), dim=1)
+    return {
+        "im": torch.rand(B, 3, H, W, generator=g) * 5,
+        "albedo": torch.rand(B, 3, H, W, generator=g),
+        "normal": normal,
+        "material": torch.rand(B, 2, H, W, generator=g),
+        "depth": torch.where(mask, 1 + 4 * torch.rand(B, 1, H, W, generator=g), torch.zeros(B, 1, H, W)),
+        "mask": mask,
+    }
+
+
+def test_ls_depth_scale_is_exact_on_a_scaled_ground_truth():
+    b = _batch()
+    gt = b["depth"].double()
+    for c in (1e-3, 0.37, 250.0):
+        pred = gt / c
+        s = ls_scale(pred, gt, b["mask"])
+        assert torch.allclose(s.flatten(), torch.full((2,), c, dtype=torch.float64), rtol=1e-12)
+        assert depth_log_mse(pred, gt, b["mask"]).abs().max() < 1e-20
+        assert float(depth_loss(pred, gt, b["mask"])) < 1e-20
+
+
+def test_losses_and_metrics_ignore_masked_pixels():
+    b = _batch()
+    pred = {k: b[k].clone() * 0.8 + 0.05 for k in ("albedo", "material")}
+    pred["normal"] = torch.nn.functional.normalize(b["normal"] + 0.3, dim=1)
+    pred["depth"] = b["depth"].clamp(min=0.5) * 1.3 + 0.1
+    loss = MaterialLoss()
+    total, terms = loss(pred, b)
+    # scribble over every masked-out pixel of predictions and ground truth alike
+    off = ~b["mask"]
+    b2 = {k: v.clone() for k, v in b.items()}
+    pred2 = {k: v.clone() for k, v in pred.items()}
+    for d in (b2, pred2):
+        for k in ("albedo", "normal", "material", "depth"):
+            d[k] = torch.where(off.expand_as(d[k]), torch.full_like(d[k], 0.77), d[k])
+    total2, terms2 = loss(pred2, b2)
+    assert torch.allclose(total, total2) and all(torch.allclose(terms[k], terms2[k]) for k in terms)
+    for fn, key in ((albedo_mse, "albedo"), (normal_angle, "normal")):
+        assert torch.allclose(fn(pred[key], b[key], b["mask"]), fn(pred2[key], b2[key], b["mask"]))
+
+
+def test_perfect_prediction_has_zero_loss_and_empty_mask_gives_nan_metric():
+    b = _batch()
+    pred = {k: b[k] for k in ("albedo", "normal", "material", "depth")}
+    total, _ = MaterialLoss()(pred, b)
+    assert float(total) < 1e-6
+    empty = torch.zeros_like(b["mask"])
+    assert torch.isnan(albedo_mse(b["albedo"], b["albedo"], empty)).all()
+
+
+def test_loss_weights_are_checked_and_perceptual_needs_weights(tmp_path):
+    with pytest.raises(ValueError, match="loss.depth"):
+        MaterialLoss(depth=-1)
+    assert not MaterialLoss(perceptual=0.1, perceptual_weights=None).perceptual_on
+    with pytest.raises(FileNotFoundError, match="loss.perceptual_weights"):
+        MaterialLoss(perceptual=0.1, perceptual_weights=str(tmp_path / "vgg16.pth"))
+
+
+def test_baselines_fit_the_training_means_and_score_every_map():
+    b = _batch()
+    base = MaterialBaselines.fit([b])
+    m = b["mask"].double()
+    expect = (b["albedo"].double() * m).sum(dim=(0, 2, 3)) / m.sum()
+    assert torch.allclose(base.mean_albedo.flatten(), expect)
+    per = base.metrics(b)
+    assert set(per) == {f"{n}/{k}" for n, ks in BASELINE_MAPS.items() for k in ks}
+    assert all(v.shape == (2,) and torch.isfinite(v).all() for v in per.values())
+    with pytest.raises(ValueError, match="no valid pixels"):
+        MaterialBaselines.fit([{**b, "mask": torch.zeros_like(b["mask"])}])
+
+
+def test_accuracy_gate_needs_the_margin_on_every_map():
+    base = {f"{n}/{k}": 1.0 for n, ks in BASELINE_MAPS.items() for k in ks}
+    model = {k: 0.5 for ks in BASELINE_MAPS.values() for k in ks}
+    assert accuracy_gate(model, base)["gate/passed"] == 1.0
+    assert accuracy_gate({**model, "metallic_mse": 0.85}, base)["gate/passed"] == 0.0
