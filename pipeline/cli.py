@@ -52,6 +52,21 @@ def _predict(args) -> int:
     return 0
 
 
+def _whdr(args) -> int:
+    from pipeline.data import iiw
+    from pipeline.metrics.whdr import whdr
+
+    photo = iiw.read_photo(Path(args.reflectance).parent, Path(args.reflectance).stem) / 255.0
+    # like the IIW script: an 8-bit PNG is sRGB and decoded to linear unless --linear says it already is
+    reflectance = photo if args.linear else iiw.srgb_to_linear(photo)
+    path = Path(args.judgements)
+    judgements = iiw.read_judgements(path.parent, path.stem) if path.suffix == ".json" else None
+    if judgements is None:
+        raise iiw.IIWError(f"{path}: judgements must be a .json file")
+    print(whdr(reflectance, judgements, delta=args.delta, convention="linear"))
+    return 0
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(prog="invrender", description=__doc__)
     sub = parser.add_subparsers(dest="command", required=True)
@@ -77,13 +92,20 @@ def main(argv: list[str] | None = None) -> int:
         help="model.pt exported by train_material, or a Lightning .ckpt (default: %(default)s)",
     )
     p.set_defaults(func=_predict)
+    w = sub.add_parser("whdr", help="WHDR of a reflectance PNG against IIW judgements (as the IIW script)")
+    w.add_argument("reflectance", help="8-bit PNG, sRGB-encoded unless --linear")
+    w.add_argument("judgements", help="IIW <id>.json")
+    w.add_argument("--linear", action="store_true", help="the PNG holds linear reflectance: score it as read")
+    w.add_argument("--delta", type=float, default=0.1)
+    w.set_defaults(func=_whdr)
     args = parser.parse_args(argv)
+    from pipeline.data.iiw import IIWError
     from pipeline.data.interiorverse import DatasetError
     from pipeline.systems.material_predict import PredictError
 
     try:
         return args.func(args)
-    except (DatasetError, PredictError) as exc:
+    except (DatasetError, PredictError, IIWError) as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 2
 

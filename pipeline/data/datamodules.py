@@ -8,12 +8,12 @@ import lightning as L
 import torch
 from torch.utils.data import DataLoader
 
-from pipeline.data.datasets import ShardDataset, collate_views, flip_views
+from pipeline.data.datasets import ShardDataset, augment_views, collate_views
 
 
 class InteriorVerseDataModule(L.LightningDataModule):
     """Loads `<root>/manifest.json` shards; the train loader shuffles with a seeded generator and, with
-    `augment`, mirrors views left-right at random (seeded)."""
+    `augment`, mirrors views and permutes their colour channels at random (seeded, see `augment_views`)."""
 
     def __init__(
         self,
@@ -45,10 +45,10 @@ class InteriorVerseDataModule(L.LightningDataModule):
         gen = torch.Generator().manual_seed(self.seed) if shuffle else None
         collate = collate_views
         if augment:
-            flip_gen = torch.Generator().manual_seed(self.seed + 1)
+            aug_gen = torch.Generator().manual_seed(self.seed + 1)
 
             def collate(items):
-                return flip_views(collate_views(items), flip_gen)
+                return augment_views(collate_views(items), aug_gen)
 
         return DataLoader(
             self.splits[split],

@@ -95,19 +95,22 @@ def collate_views(items: list[dict]) -> dict:
     return batch
 
 
-def flip_views(batch: dict, generator: torch.Generator) -> dict:
-    """Mirror each view of a collated batch left-right with probability 1/2, in place of the maps: the
-    normal's x (view space, +x right) changes sign; per-view lighting probes are not mirrored, so a
-    batch that carries them is returned unchanged."""
+def augment_views(batch: dict, generator: torch.Generator) -> dict:
+    """Per view of a collated batch, exact augmentations of the rendering: a left-right mirror with
+    probability 1/2 (the normal's view-space x changes sign) and a random permutation of the RGB
+    channels of image and albedo together (RGB rendering is per channel, so the permuted image is the
+    same scene under permuted albedo and light colours). Batches with lighting probes, which would need
+    the same transforms, are returned unchanged."""
     if "light" in batch:
         return batch
-    flip = torch.rand(batch["im"].shape[0], generator=generator) < 0.5
-    if not flip.any():
-        return batch
-    out = dict(batch)
+    B = batch["im"].shape[0]
+    flip = torch.rand(B, generator=generator) < 0.5
+    perms = [torch.randperm(3, generator=generator) for _ in range(B)]
+    out = {k: (v.clone() if k in MAP_KEYS else v) for k, v in batch.items()}
     for k in MAP_KEYS:
-        x = batch[k].clone()
-        x[flip] = x[flip].flip(-1)
-        out[k] = x
+        out[k][flip] = out[k][flip].flip(-1)
     out["normal"][flip, 0] *= -1
+    for i, perm in enumerate(perms):
+        out["im"][i] = out["im"][i, perm]
+        out["albedo"][i] = out["albedo"][i, perm]
     return out

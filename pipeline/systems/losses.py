@@ -115,3 +115,26 @@ class MaterialLoss(nn.Module):
             )
             total = total + self.perceptual_weight * terms["perceptual"]
         return total, terms
+
+
+def ranking_loss(albedo: torch.Tensor, comparisons: list[dict], margin: float = 0.5) -> torch.Tensor:
+    """Li et al. 2020's ordinal loss on IIW judgements, on r = log(mean_c albedo + 0.001) at each point:
+    equal pairs w (r1 - r2)^2; "point k darker" pairs w max(0, r_darker - r_lighter + margin)^2; the
+    weighted mean over all comparisons of the batch. albedo (B, 3, H, W); comparisons per image (see
+    pipeline.data.benchmarks.comparisons_tensor)."""
+    grey = torch.log(albedo.mean(1) + 1e-3)  # (B, H, W)
+    total, weight = albedo.new_zeros(()), albedo.new_zeros(())
+    for b, c in enumerate(comparisons):
+        if not len(c["label"]):
+            continue
+        r1 = grey[b, c["p1"][:, 0], c["p1"][:, 1]]
+        r2 = grey[b, c["p2"][:, 0], c["p2"][:, 1]]
+        w = c["weight"].to(albedo)
+        label = c["label"].to(albedo.device)
+        darker_first = torch.relu(r1 - r2 + margin) ** 2
+        darker_second = torch.relu(r2 - r1 + margin) ** 2
+        equal = (r1 - r2) ** 2
+        per = torch.where(label == 0, darker_first, torch.where(label == 1, darker_second, equal))
+        total = total + (w * per).sum()
+        weight = weight + w.sum()
+    return total / weight.clamp(min=1e-12)

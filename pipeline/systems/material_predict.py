@@ -98,8 +98,12 @@ def output_name(path: Path) -> str:
 
 
 @torch.no_grad()
-def predict_maps(net: MaterialNet, meta: dict, im: np.ndarray) -> dict[str, np.ndarray]:
-    """One (H, W, 3) linear image -> maps at (H, W) in the InteriorVerse conventions (see module doc)."""
+def predict_maps(
+    net: MaterialNet, meta: dict, im: np.ndarray, renormalize_normals: bool = True
+) -> dict[str, np.ndarray]:
+    """One (H, W, 3) linear image -> maps at (H, W) in the InteriorVerse conventions (see module doc).
+    Upsampled normals are renormalised unless `renormalize_normals` is off (the NYUv2 protocol scores
+    the bilinearly resized prediction as it is)."""
     H, W = im.shape[:2]
     x = torch.from_numpy(im).permute(2, 0, 1)[None]
     size = meta.get("input_size")  # (h, w) the network was trained at
@@ -107,7 +111,8 @@ def predict_maps(net: MaterialNet, meta: dict, im: np.ndarray) -> dict[str, np.n
         x = F.interpolate(x, size=tuple(size), mode="area" if size[0] < H else "bilinear", align_corners=None)
     pred = net(x)
     back = {k: F.interpolate(v, size=(H, W), mode="bilinear", align_corners=False) for k, v in pred.items()}
-    back["normal"] = F.normalize(back["normal"], dim=1, eps=1e-6)
+    if renormalize_normals:
+        back["normal"] = F.normalize(back["normal"], dim=1, eps=1e-6)
     depth_m = back["depth"][0, 0] * float(meta.get("depth_scale", 1.0))
     material = back["material"][0].permute(1, 2, 0).clamp(0, 1)
     return {

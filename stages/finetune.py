@@ -1,0 +1,19 @@
+"""DVC stage `finetune` (see conf/finetune.yaml)."""
+
+import hydra
+from omegaconf import DictConfig
+
+from pipeline.systems.benchmark_stages import run_finetune
+
+
+def run(cfg: DictConfig) -> dict[str, float]:
+    return run_finetune(cfg)
+
+
+@hydra.main(config_path="../conf", config_name="finetune", version_base="1.3")
+def main(cfg: DictConfig) -> None:
+    run(cfg)
+
+
+if __name__ == "__main__":
+    main()
