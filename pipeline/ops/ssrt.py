@@ -29,6 +29,7 @@ import torch
 from pipeline.ops.camera import backproject, project
 
 NEAR = 1e-3  # metres: rays are clipped to z-depth >= NEAR
+SYNC_EVERY = 4  # steps between checks of how many rays are still marching
 
 
 def min_pyramid(depth: torch.Tensor) -> list[torch.Tensor]:
@@ -225,16 +226,19 @@ def trace(
         pixel[k], hit[k], gap[k] = r[:, :2].long(), r[:, 0] >= 0, r[:, 2]
 
     take = torch.index_select
-    for _ in range(max_steps):
-        n_live = int(live.sum())
-        if n_live == 0:
-            break
-        if n_live < 0.75 * live.numel():  # compact by one shared index, only once enough rays have finished
-            write_out(~live)
-            keep = torch.nonzero(live).squeeze(-1)
-            ids, st, s, flat_small, ray, lvl, b_of, live, res = (
-                take(x, 0, keep) for x in (ids, st, s, flat_small, ray, lvl, b_of, live, res)
-            )
+    for it in range(max_steps):
+        # reading the live count waits for the device and (compiled) re-enters Python guards: do it every
+        # few steps only; steps on finished rays change nothing
+        if it % SYNC_EVERY == 0:
+            n_live = int(live.sum())
+            if n_live == 0:
+                break
+            if n_live < 0.75 * live.numel():  # compact by one shared index once enough rays have finished
+                write_out(~live)
+                keep = torch.nonzero(live).squeeze(-1)
+                ids, st, s, flat_small, ray, lvl, b_of, live, res = (
+                    take(x, 0, keep) for x in (ids, st, s, flat_small, ray, lvl, b_of, live, res)
+                )
         s, lvl, live, res = step(st, s, flat_small, lvl, ray, b_of, live, res, scene, top, fov_x)
     write_out(torch.ones_like(live))
     return pixel, hit, gap
