@@ -27,18 +27,20 @@ def normalize_input(im: torch.Tensor) -> torch.Tensor:
     return torch.log1p(im.clamp(min=0) / scale)
 
 
-def _conv(cin: int, cout: int, stride: int = 1) -> nn.Sequential:
-    return nn.Sequential(nn.Conv2d(cin, cout, 3, stride, 1, bias=False), nn.BatchNorm2d(cout), nn.ReLU(inplace=True))
+def _conv(cin: int, cout: int, stride: int = 1, norm: str = "batch") -> nn.Sequential:
+    """3x3 convolution, normalisation (`batch`, or `group` for batches of one image), ReLU."""
+    layer = nn.BatchNorm2d(cout) if norm == "batch" else nn.GroupNorm(min(8, cout), cout)
+    return nn.Sequential(nn.Conv2d(cin, cout, 3, stride, 1, bias=False), layer, nn.ReLU(inplace=True))
 
 
 class SmallEncoder(nn.Module):
     """Five stride-2 stages (features at 1/2 .. 1/32) of two 3x3 convolutions each."""
 
-    def __init__(self, widths=(16, 32, 64, 96, 128)):
+    def __init__(self, widths=(16, 32, 64, 96, 128), norm: str = "batch"):
         super().__init__()
         stages, cin = [], 3
         for w in widths:
-            stages.append(nn.Sequential(_conv(cin, w, 2), _conv(w, w)))
+            stages.append(nn.Sequential(_conv(cin, w, 2, norm), _conv(w, w, 1, norm)))
             cin = w
         self.stages = nn.ModuleList(stages)
         self.channels = list(widths)

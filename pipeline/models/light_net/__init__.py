@@ -1,0 +1,122 @@
+"""LightNet: spatially-varying incident radiance L_i(p, wi) from one image (DESIGN.md section 5).
+
+For a ray from surface point p along wi, screen-space ray tracing finds where it lands in the image; the
+local branch predicts the radiance leaving that pixel, the out-of-view branch volume-renders a
+per-image NeRF. They are blended with the SSRT confidence: L = (1 - u) L_ssrt + u L_out, u = tanh(k gap),
+u = 1 for misses.
+
+Modes: `mixed` (the paper), `ssrt_only` (misses get no light), `out_of_view_only`. Compute follows need:
+in `mixed` the out-of-view branch is queried only for rays with u >= `out_threshold`; below it a ray
+keeps L_ssrt alone (its u < threshold share of L_out is dropped). `out_threshold=0` queries every ray.
+"""
+
+from __future__ import annotations
+
+import torch
+from torch import nn
+
+from pipeline.models.light_net.branches import LocalBranch, OutOfViewBranch, image_scale, scene_bounds
+from pipeline.ops import ssrt
+from pipeline.ops.brdf import f0
+
+MODES = ("mixed", "ssrt_only", "out_of_view_only")
+
+
+def blend(l_ssrt: torch.Tensor, l_out: torch.Tensor, u: torch.Tensor) -> torch.Tensor:
+    """(1 - u) L_ssrt + u L_out for (N, 3) radiances and (N,) weights in [0, 1]."""
+    u = u.unsqueeze(-1)
+    return (1 - u) * l_ssrt + u * l_out
+
+
+def confidence(hit: torch.Tensor, gap: torch.Tensor, k: float) -> torch.Tensor:
+    """u = tanh(k gap) for SSRT hits, 1 for misses; (N,)."""
+    return torch.where(hit, torch.tanh(k * gap), torch.ones_like(gap))
+
+
+class LightNet(nn.Module):
+    def __init__(
+        self,
+        mode: str = "mixed",
+        k: float = 10.0,
+        out_threshold: float = 0.0,
+        local: dict | None = None,
+        out_of_view: dict | None = None,
+        ssrt_compiled: bool = False,
+    ):
+        super().__init__()
+        if mode not in MODES:
+            raise ValueError(f"model.light_net.mode={mode!r}: choose one of {MODES}")
+        if not 0.0 <= out_threshold <= 1.0:
+            raise ValueError(f"model.light_net.out_threshold={out_threshold}: must be in [0, 1]")
+        self.mode, self.k, self.out_threshold, self.ssrt_compiled = mode, float(k), float(out_threshold), ssrt_compiled
+        self.local = LocalBranch(**(local or {})) if mode != "out_of_view_only" else None
+        self.out_of_view = OutOfViewBranch(**(out_of_view or {})) if mode != "ssrt_only" else None
+
+    def encode(self, im: torch.Tensor, depth: torch.Tensor, fov_x: float) -> dict:
+        """Per-image context: im (B, 3, H, W) HDR, depth (B, H, W) z-depth metres."""
+        ctx = {"scale": image_scale(im), "bounds": scene_bounds(depth, fov_x), "size": im.shape[-2:]}
+        if self.local is not None:
+            ctx["local"] = self.local.encode(im)
+        if self.out_of_view is not None:
+            ctx["feature"], ctx["params"] = self.out_of_view.encode(im)
+        return ctx
+
+    def forward(self, ctx: dict, gbuffer: dict, fov_x: float, origin, wi, batch_index, generator=None) -> dict:
+        """Incident radiance for N rays. gbuffer: depth (B, H, W) z-depth metres, normal (B, 3, H, W),
+        albedo (B, 3, H, W), material (B, 2, H, W); origin, wi (N, 3) view space; batch_index (N,) long.
+        Returns radiance (N, 3), u (N,), hit (N,) and out_queries (number of out-of-view evaluations)."""
+        N = len(wi)
+        pixel, hit, gap = ssrt.trace(
+            gbuffer["depth"],
+            gbuffer["normal"],
+            fov_x,
+            origin.detach(),
+            wi.detach(),
+            batch_index,
+            compiled=self.ssrt_compiled,
+        )
+        u = confidence(hit, gap.to(wi.dtype), self.k)
+        radiance = wi.new_zeros(N, 3)
+        l_ssrt = wi.new_zeros(N, 3)
+        if self.local is not None and hit.any():
+            h = torch.nonzero(hit).squeeze(-1)
+            b, px = batch_index[h], pixel[h]
+            gb = _gbuffer_at(gbuffer, b, px)
+            l_ssrt = l_ssrt.index_put((h,), self.local.query(ctx["local"], ctx["scale"], b, px, ctx["size"], wi[h], gb))
+        if self.mode == "ssrt_only":
+            return {"radiance": l_ssrt, "u": u, "hit": hit, "out_queries": 0}
+        need = torch.ones_like(hit) if self.mode == "out_of_view_only" else u >= self.out_threshold
+        q = torch.nonzero(need).squeeze(-1)
+        l_out = wi.new_zeros(N, 3)
+        if q.numel():
+            l_out = l_out.index_put(
+                (q,),
+                self.out_of_view.query(
+                    ctx["feature"],
+                    ctx["params"],
+                    ctx["scale"],
+                    ctx["bounds"],
+                    batch_index[q],
+                    origin[q],
+                    wi[q],
+                    generator,
+                ),
+            )
+        if self.mode == "out_of_view_only":
+            radiance = l_out
+        else:
+            radiance = torch.where(need.unsqueeze(-1), blend(l_ssrt, l_out, u), l_ssrt)
+        return {"radiance": radiance, "u": u, "hit": hit, "out_queries": int(q.numel())}
+
+
+def _gbuffer_at(gbuffer: dict, b: torch.Tensor, px: torch.Tensor) -> torch.Tensor:
+    """(N, 10) Kd, Ks, normal, roughness at pixels px (N, 2) (row, col) of images b (N,)."""
+
+    def at(x):
+        return x[b, :, px[:, 0], px[:, 1]]
+
+    albedo, mat = at(gbuffer["albedo"]), at(gbuffer["material"])
+    rough, metal = mat[:, :1], mat[:, 1:2]
+    kd = (1 - metal) * albedo
+    ks = f0(albedo, metal)
+    return torch.cat([kd, ks, at(gbuffer["normal"]), rough], -1)

@@ -1,0 +1,136 @@
+"""LightNet pieces: hypernetwork, volume rendering, the SSRT/out-of-view blend, gradients, hard rays."""
+
+import math
+
+import pytest
+import torch
+from torch import nn
+
+from pipeline.bench.scenes import BoxRoom, ssrt_rays
+from pipeline.models.light_net import LightNet, blend, confidence
+from pipeline.models.light_net.branches import ray_box, scene_bounds
+from pipeline.models.light_net.hyper import HyperMLP
+from pipeline.ops.volume import composite, stratified_edges
+
+
+def test_generated_mlp_equals_an_ordinary_mlp_with_the_same_weights():
+    torch.manual_seed(0)
+    hyper = HyperMLP(feature_dim=5, sizes=[4, 7, 3])
+    params = hyper(torch.randn(2, 5))
+    x = torch.randn(6, 4)
+    scene = torch.tensor([0, 1, 1, 0, 1, 0])
+    out = HyperMLP.apply(params, x, scene)
+    for b in (0, 1):
+        mlp = nn.Sequential(nn.Linear(4, 7), nn.ReLU(), nn.Linear(7, 3))
+        with torch.no_grad():
+            mlp[0].weight.copy_(params[0][0][b]), mlp[0].bias.copy_(params[0][1][b])
+            mlp[2].weight.copy_(params[1][0][b]), mlp[2].bias.copy_(params[1][1][b])
+        sel = scene == b
+        assert torch.allclose(out[sel], mlp(x[sel]), atol=1e-6)
+
+
+def test_volume_rendering_matches_the_closed_form():
+    # constant density s and radiance c on [t0, t1]: L = c (1 - exp(-s (t1 - t0))), for any stratification
+    t0, t1, s, c = torch.tensor([0.5, 1.0]), torch.tensor([2.5, 1.2]), 0.8, torch.tensor([1.0, 2.0, 3.0])
+    for samples in (1, 7, 64):
+        edges, _ = stratified_edges(t0, t1, samples, torch.Generator().manual_seed(0))
+        sigma = torch.full((2, samples), s)
+        rad, w, left = composite(sigma, c.expand(2, samples, 3), edges)
+        expect = 1 - torch.exp(-s * (t1 - t0))
+        assert torch.allclose(rad, expect[:, None] * c, atol=1e-6)
+        assert torch.allclose(left, 1 - expect, atol=1e-6) and torch.allclose(w.sum(1), expect, atol=1e-6)
+    # two slabs: an opaque-ish front hides the back
+    edges = torch.tensor([[0.0, 1.0, 2.0]])
+    rad, _, _ = composite(torch.tensor([[2.0, 1.0]]), torch.tensor([[[1.0], [5.0]]]), edges)
+    a1, a2 = 1 - math.exp(-2.0), 1 - math.exp(-1.0)
+    assert rad.item() == pytest.approx(a1 * 1.0 + math.exp(-2.0) * a2 * 5.0, rel=1e-6)
+
+
+def test_blend_honours_u_at_0_1_and_misses():
+    l_ssrt, l_out = torch.tensor([[1.0, 2.0, 3.0]] * 3), torch.tensor([[10.0, 20.0, 30.0]] * 3)
+    hit = torch.tensor([True, True, False])
+    u = confidence(hit, torch.tensor([0.0, 100.0, 0.0]), k=10.0)
+    assert u.tolist() == [0.0, 1.0, 1.0]
+    out = blend(l_ssrt, l_out, u)
+    assert torch.equal(out[0], l_ssrt[0]) and torch.equal(out[1], l_out[1]) and torch.equal(out[2], l_out[2])
+    half = blend(l_ssrt[:1], l_out[:1], torch.tensor([0.5]))
+    assert torch.allclose(half, (l_ssrt[:1] + l_out[:1]) / 2)
+
+
+def test_ray_box_and_scene_bounds():
+    lo, hi = torch.tensor([[-1.0, -1.0, -1.0]]), torch.tensor([[1.0, 1.0, 1.0]])
+    t0, t1 = ray_box(torch.tensor([[0.0, 0.0, 0.0]]), torch.tensor([[1.0, 0.0, 0.0]]), lo, hi)
+    assert t0.item() == 0.0 and t1.item() == pytest.approx(1.0)
+    t0, t1 = ray_box(torch.tensor([[5.0, 5.0, 5.0]]), torch.tensor([[1.0, 0.0, 0.0]]), lo, hi)
+    assert t1.item() == t0.item()  # a miss is an empty interval
+    depth = torch.full((1, 4, 4), 3.0)
+    depth[0, 0, 0] = float("inf")
+    b = scene_bounds(depth, 90.0)
+    assert (b[0, 0] < 0).all() == bool((b[0, 0, :2] < 0).all()) and b[0, 0, 2] < -3.0 and b[0, 1, 2] > 0
+
+
+def _scene(B=2, H=24, W=32, fov=85.0):
+    room = BoxRoom.default(torch.float32)
+    depth, normal = room.render(H, W, fov)
+    depth, normal = depth.float().repeat(B, 1, 1), normal.float().repeat(B, 1, 1, 1)
+    g = torch.Generator().manual_seed(0)
+    gbuffer = {
+        "depth": depth,
+        "normal": normal,
+        "albedo": torch.rand(B, 3, H, W, generator=g),
+        "material": torch.rand(B, 2, H, W, generator=g),
+    }
+    im = torch.rand(B, 3, H, W, generator=g) * 4
+    o, wi = ssrt_rays(depth[:1], normal[:1], fov, 2, g)
+    n = len(o)
+    origin, wi = torch.cat([o, o]).float(), torch.cat([wi, wi]).float()
+    batch_index = torch.cat([torch.zeros(n), torch.ones(n)]).long()
+    return im, gbuffer, fov, origin, wi, batch_index
+
+
+@pytest.mark.parametrize("mode", ("mixed", "ssrt_only", "out_of_view_only"))
+def test_every_mode_gives_finite_non_negative_light_and_gradients_reach_both_branches(mode):
+    torch.manual_seed(0)
+    im, gbuffer, fov, origin, wi, bidx = _scene()
+    net = LightNet(mode=mode, out_of_view={"samples": 8})
+    ctx = net.encode(im, gbuffer["depth"], fov)
+    out = net(ctx, gbuffer, fov, origin, wi, bidx, torch.Generator().manual_seed(1))
+    L = out["radiance"]
+    assert L.shape == (len(wi), 3) and torch.isfinite(L).all() and (L >= 0).all()
+    L.sum().backward()
+    if net.local is not None:
+        assert net.local.mlp[-1].weight.grad.abs().sum() > 0
+        assert net.local.encoder.stages[0][0][0].weight.grad.abs().sum() > 0
+    if net.out_of_view is not None:
+        assert net.out_of_view.hyper.heads[0].weight.grad.abs().sum() > 0
+        assert out["out_queries"] == (len(wi) if mode != "ssrt_only" else 0)
+
+
+def test_out_threshold_saves_queries_and_keeps_ssrt_light_below_it():
+    torch.manual_seed(0)
+    im, gbuffer, fov, origin, wi, bidx = _scene()
+    full = LightNet(mode="mixed", out_threshold=0.0, out_of_view={"samples": 4})
+    lazy = LightNet(mode="mixed", out_threshold=0.5, out_of_view={"samples": 4})
+    lazy.load_state_dict(full.state_dict())
+    with torch.no_grad():
+        a = full(full.encode(im, gbuffer["depth"], fov), gbuffer, fov, origin, wi, bidx)
+        b = lazy(lazy.encode(im, gbuffer["depth"], fov), gbuffer, fov, origin, wi, bidx)
+    assert b["out_queries"] == int((a["u"] >= 0.5).sum()) < a["out_queries"]
+    same = a["u"] >= 0.5
+    assert torch.allclose(a["radiance"][same], b["radiance"][same], atol=1e-5)
+
+
+def test_hard_rays_stay_finite():
+    """Rays leaving the screen, starting on depth edges, pointing into the surface, or from behind the camera."""
+    torch.manual_seed(0)
+    im, gbuffer, fov, origin, wi, bidx = _scene(B=1)
+    n = 6
+    origin = torch.cat([origin[:n], torch.tensor([[0.0, 0.0, 0.5]]), origin[:1]])
+    wi = torch.cat([wi[:n], torch.tensor([[0.0, 0.0, -1.0]]), -wi[:1]])
+    wi[0] = torch.tensor([1.0, 0.0, 0.0])  # straight sideways: leaves the screen
+    bidx = torch.zeros(len(wi), dtype=torch.long)
+    net = LightNet(mode="mixed", out_of_view={"samples": 4})
+    out = net(net.encode(im, gbuffer["depth"], fov), gbuffer, fov, origin, wi, bidx)
+    assert torch.isfinite(out["radiance"]).all()
+    out["radiance"].sum().backward()
+    assert all(torch.isfinite(p.grad).all() for p in net.parameters() if p.grad is not None)
