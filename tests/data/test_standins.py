@@ -42,11 +42,19 @@ def test_iiw_standin_reads_back_and_agrees_with_ground_truth(tmp_path):
         j = iiw.read_judgements(tmp_path, image_id)
         assert all(0 < c["darker_score"] <= 1 for c in j["intrinsic_comparisons"])
         for p in j["intrinsic_points"]:  # metal is marked non-opaque, exactly
-            row, col = int(p["y"] * 12), int(p["x"] * 16)
-            assert p["opaque"] == (col >= 4)
-        # ground-truth albedo mostly agrees with the simulated annotators; a constant albedo does not
+            assert p["opaque"] == (int(p["x"] * 16) >= 4)
+        # ground-truth albedo mostly agrees with the simulated annotators; a flat albedo calls every pair
+        # equal and disagrees with every "darker" verdict
         assert whdr(view["albedo"], j, convention="linear") < 0.15
+        darker = sum(c["darker_score"] for c in j["intrinsic_comparisons"] if c["darker"] != "E" and _opaque(j, c))
+        total = sum(c["darker_score"] for c in j["intrinsic_comparisons"] if _opaque(j, c))
+        assert whdr(np.full_like(view["albedo"], 0.5), j, convention="linear") == pytest.approx(darker / total)
         assert iiw.read_photo(tmp_path, image_id).dtype == np.uint8
+
+
+def _opaque(j, c):
+    pts = {p["id"]: p["opaque"] for p in j["intrinsic_points"]}
+    return pts[c["point1"]] and pts[c["point2"]]
 
 
 def test_nyu_standin_reads_back_through_the_loaders(tmp_path):
