@@ -52,8 +52,8 @@ class LightNet(nn.Module):
         self.local = LocalBranch(**(local or {})) if mode != "out_of_view_only" else None
         self.out_of_view = OutOfViewBranch(**(out_of_view or {})) if mode != "ssrt_only" else None
 
-    def encode(self, im: torch.Tensor, depth: torch.Tensor, fov_x: float) -> dict:
-        """Per-image context: im (B, 3, H, W) HDR, depth (B, H, W) z-depth metres."""
+    def encode(self, im: torch.Tensor, depth: torch.Tensor, fov_x) -> dict:
+        """Per-image context: im (B, 3, H, W) HDR, depth (B, H, W) z-depth metres, fov_x float or (B,)."""
         ctx = {"scale": image_scale(im), "bounds": scene_bounds(depth, fov_x), "size": im.shape[-2:]}
         if self.local is not None:
             ctx["local"] = self.local.encode(im)
@@ -61,20 +61,13 @@ class LightNet(nn.Module):
             ctx["feature"], ctx["params"] = self.out_of_view.encode(im)
         return ctx
 
-    def forward(self, ctx: dict, gbuffer: dict, fov_x: float, origin, wi, batch_index, generator=None) -> dict:
-        """Incident radiance for N rays. gbuffer: depth (B, H, W) z-depth metres, normal (B, 3, H, W),
+    def forward(self, ctx: dict, gbuffer: dict, fov_x, origin, wi, batch_index, generator=None) -> dict:
+        """Incident radiance for N rays. fov_x: degrees, one float or (B,) per view; gbuffer: depth (B, H, W)
+        z-depth metres, normal (B, 3, H, W),
         albedo (B, 3, H, W), material (B, 2, H, W); origin, wi (N, 3) view space; batch_index (N,) long.
         Returns radiance (N, 3), u (N,), hit (N,) and out_queries (number of out-of-view evaluations)."""
         N = len(wi)
-        pixel, hit, gap = ssrt.trace(
-            gbuffer["depth"],
-            gbuffer["normal"],
-            fov_x,
-            origin.detach(),
-            wi.detach(),
-            batch_index,
-            compiled=self.ssrt_compiled,
-        )
+        pixel, hit, gap = trace_views(gbuffer, fov_x, origin.detach(), wi.detach(), batch_index, self.ssrt_compiled)
         u = confidence(hit, gap.to(wi.dtype), self.k)
         radiance = wi.new_zeros(N, 3)
         l_ssrt = wi.new_zeros(N, 3)
@@ -107,6 +100,25 @@ class LightNet(nn.Module):
         else:
             radiance = torch.where(need.unsqueeze(-1), blend(l_ssrt, l_out, u), l_ssrt)
         return {"radiance": radiance, "u": u, "hit": hit, "out_queries": int(q.numel())}
+
+
+def trace_views(gbuffer: dict, fov_x, origin, wi, batch_index, compiled: bool = False):
+    """ssrt.trace for a batch whose views may differ in FOV (one trace per distinct FOV)."""
+    if not torch.is_tensor(fov_x) or fov_x.ndim == 0:
+        return ssrt.trace(gbuffer["depth"], gbuffer["normal"], float(fov_x), origin, wi, batch_index, compiled=compiled)
+    N = len(wi)
+    pixel = torch.full((N, 2), -1, dtype=torch.long, device=wi.device)
+    hit = torch.zeros(N, dtype=torch.bool, device=wi.device)
+    gap = torch.zeros(N, dtype=gbuffer["depth"].dtype, device=wi.device)
+    per_ray = fov_x.to(wi.device)[batch_index]
+    for f in torch.unique(fov_x).tolist():
+        sel = torch.nonzero(per_ray == f).squeeze(-1)
+        if sel.numel():
+            p, h, g = ssrt.trace(
+                gbuffer["depth"], gbuffer["normal"], f, origin[sel], wi[sel], batch_index[sel], compiled=compiled
+            )
+            pixel[sel], hit[sel], gap[sel] = p, h, g
+    return pixel, hit, gap
 
 
 def _gbuffer_at(gbuffer: dict, b: torch.Tensor, px: torch.Tensor) -> torch.Tensor:

@@ -131,10 +131,19 @@ def ray_box(origin: torch.Tensor, direction: torch.Tensor, lo: torch.Tensor, hi:
     return t_near, t_far
 
 
-def scene_bounds(depth: torch.Tensor, fov_x: float, margin: float = 0.1) -> torch.Tensor:
-    """(B, H, W) z-depth (0 / non-finite = none) -> (B, 2, 3) view-space box of the visible surfaces and
-    the camera, grown by `margin` of its size (the out-of-view scene is assumed to lie around them)."""
-    pts = backproject(torch.where(torch.isfinite(depth), depth, torch.zeros_like(depth)), fov_x)  # (B, H, W, 3)
+def backproject_views(depth: torch.Tensor, fov_x) -> torch.Tensor:
+    """backproject for a batch whose views may differ in FOV: depth (B, H, W), fov_x float or (B,) degrees
+    -> (B, H, W, 3)."""
+    if not torch.is_tensor(fov_x) or fov_x.ndim == 0:
+        return backproject(depth, float(fov_x))
+    return torch.stack([backproject(depth[b : b + 1], float(fov_x[b]))[0] for b in range(depth.shape[0])])
+
+
+def scene_bounds(depth: torch.Tensor, fov_x, margin: float = 0.1) -> torch.Tensor:
+    """(B, H, W) z-depth (0 / non-finite = none), fov_x float or (B,) -> (B, 2, 3) view-space box of the
+    visible surfaces and the camera, grown by `margin` of its size (the out-of-view scene is assumed to
+    lie around them)."""
+    pts = backproject_views(torch.where(torch.isfinite(depth), depth, torch.zeros_like(depth)), fov_x)
     valid = (torch.isfinite(depth) & (depth > 0)).unsqueeze(-1)
     big = torch.finfo(depth.dtype).max
     lo = torch.where(valid, pts, torch.full_like(pts, big)).flatten(1, 2).amin(1).clamp(max=0)

@@ -1,0 +1,233 @@
+"""LightningModule for LightNet: HDR light supervision at ground-truth probes + Monte Carlo re-rendering.
+
+Per training step, for a batch of views: G-buffers (the frozen MaterialNet's predictions, its depth in
+metres through the exported depth scale, or the ground truth), random probes and texels of the lighting
+ground truth (relative MSE with a stop-gradient denominator, eps 1e-3, no clipping), and K random valid
+pixels re-rendered through the MC estimator with LightNet as the incident-radiance callback (L2 against
+the input, in units of the image mean).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+
+import lightning as L
+import torch
+
+from pipeline.models.light_net import LightNet
+from pipeline.models.light_net.branches import backproject_views
+from pipeline.models.material_net import MaterialNet
+from pipeline.ops.mc import estimate
+
+PROBE_EPS = 1e-3  # m: probe origins sit this far above their surface, as do re-render ray origins
+
+
+def relative_mse(pred: torch.Tensor, target: torch.Tensor, eps: float = 1e-3) -> torch.Tensor:
+    """mean(((L^ - L) / (sg(L^) + eps))^2): RawNeRF's HDR loss (no clipping)."""
+    return (((pred - target) / (pred.detach() + eps)) ** 2).mean()
+
+
+def log_l1(pred: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
+    return (torch.log1p(pred.clamp(min=0)) - torch.log1p(target.clamp(min=0))).abs().mean()
+
+
+def psnr_tonemapped(pred: torch.Tensor, target: torch.Tensor, scale: torch.Tensor) -> torch.Tensor:
+    """PSNR (dB) of HDR radiances after x / (2 * image mean), then Reinhard x / (1 + x), so values lie in
+    [0, 1) whatever the exposure. pred, target (N, 3); scale (N,) image means."""
+
+    def tm(x):
+        x = x.clamp(min=0) / (2 * scale[:, None])
+        return x / (1 + x)
+
+    mse = ((tm(pred) - tm(target)) ** 2).mean().clamp(min=1e-12)
+    return -10 * torch.log10(mse)
+
+
+def probe_rays(lights: list[dict], kind: str, probes: int | None, texels: int | None, generator, device):
+    """Rays of the lighting ground truth of a batch: origin (M, 3), direction (M, 3), radiance (M, 3),
+    image index (M,), probe pixel (M, 2) (surface probes; -1 for free points). probes/texels None = all."""
+    origins, dirs, rads, bidx, pix = [], [], [], [], []
+    for b, light in enumerate(lights):
+        pos = torch.as_tensor(light[f"{kind}_position"], dtype=torch.float32)
+        if not len(pos):
+            continue
+        d = torch.as_tensor(light[f"{kind}_directions"], dtype=torch.float32).flatten(1, 2)  # (P, T, 3)
+        r = torch.as_tensor(light[f"{kind}_radiance"], dtype=torch.float32).flatten(1, 2)
+        P, T = d.shape[:2]
+        pi = torch.randperm(P, generator=generator)[: probes or P]
+        ti = torch.stack([torch.randperm(T, generator=generator)[: texels or T] for _ in range(len(pi))])
+        o = pos[pi]
+        if kind == "surf":
+            o = o + PROBE_EPS * torch.as_tensor(light["surf_normal"], dtype=torch.float32)[pi]
+            px = torch.as_tensor(light["surf_pixel"]).long()[pi]
+        else:
+            px = torch.full((len(pi), 2), -1, dtype=torch.long)
+        n_t = ti.shape[1]
+        origins.append(o.repeat_interleave(n_t, 0))
+        dirs.append(torch.gather(d[pi], 1, ti[..., None].expand(-1, -1, 3)).flatten(0, 1))
+        rads.append(torch.gather(r[pi], 1, ti[..., None].expand(-1, -1, 3)).flatten(0, 1))
+        bidx.append(torch.full((len(pi) * n_t,), b, dtype=torch.long))
+        pix.append(px.repeat_interleave(n_t, 0))
+    if not origins:
+        return None
+    return tuple(torch.cat(x).to(device) for x in (origins, dirs, rads, bidx, pix))
+
+
+class LightingSystem(L.LightningModule):
+    """light_net: LightNet kwargs; material: {"model": kwargs, "state_dict": ..., "depth_scale": s} of the
+    frozen MaterialNet, used when gbuffers == "predicted"; see the module docstring for the step."""
+
+    def __init__(
+        self,
+        light_net: dict,
+        material: dict | None,
+        gbuffers: str = "predicted",
+        pixels: int = 64,
+        spp: int = 8,
+        probes: int = 8,
+        texels: int = 16,
+        free_probes: int = 2,
+        render_weight: float = 1.0,
+        eval_spp: int = 16,
+        eval_stride: int = 4,
+        optimizer: Callable | None = None,
+        seed: int = 0,
+    ):
+        super().__init__()
+        if gbuffers not in ("predicted", "ground_truth"):
+            raise ValueError(f"gbuffers={gbuffers!r}: choose predicted or ground_truth")
+        if gbuffers == "predicted" and material is None:
+            raise ValueError("gbuffers=predicted needs the trained MaterialNet (material_path)")
+        self.save_hyperparameters({"light_net": dict(light_net), "gbuffers": gbuffers})
+        self.net = LightNet(**light_net)
+        self.material = None
+        if gbuffers == "predicted":
+            self.material = MaterialNet(**material["model"]).eval().requires_grad_(False)
+            self.material.load_state_dict(material["state_dict"])
+            self.depth_scale = float(material.get("depth_scale", 1.0))
+        self.gbuffer_source = gbuffers
+        self.pixels, self.spp, self.probes, self.texels, self.free_probes = pixels, spp, probes, texels, free_probes
+        self.render_weight, self.eval_spp, self.eval_stride = float(render_weight), int(eval_spp), int(eval_stride)
+        self.optimizer_fn = optimizer
+        self.generator = torch.Generator().manual_seed(int(seed))
+        self.eval_rows: list[dict] = []
+
+    # ------------------------------------------------------------------ pieces
+    @torch.no_grad()
+    def gbuffers(self, batch: dict) -> dict:
+        if self.material is None:
+            gb = {k: batch[k] for k in ("albedo", "normal", "material")}
+            depth = batch["depth"][:, 0]
+        else:
+            self.material.eval()
+            pred = self.material(batch["im"])
+            gb = {k: pred[k] for k in ("albedo", "normal", "material")}
+            depth = pred["depth"][:, 0] * self.depth_scale
+        gb["depth"] = torch.where(batch["mask"][:, 0], depth, torch.zeros_like(depth))
+        return gb
+
+    @staticmethod
+    def fov(batch: dict) -> torch.Tensor:
+        """(B,) horizontal FOV of each view, degrees (views of a batch may differ)."""
+        return batch["fov_x_deg"].float()
+
+    def render(self, ctx, gb, batch, fov, pixels: torch.Tensor, spp: int, generator, with_grad: bool = True):
+        """Re-render flat pixel indices (M,) (into B*H*W) with LightNet light -> (rgb (M, 3), input (M, 3))."""
+        B, _, H, W = batch["im"].shape
+        b = pixels // (H * W)
+        rc = pixels % (H * W)
+        row, col = rc // W, rc % W
+        pts = backproject_views(gb["depth"], fov)[b, row, col]
+        normal = torch.nn.functional.normalize(gb["normal"][b, :, row, col], dim=-1)
+        wo = torch.nn.functional.normalize(-pts, dim=-1)
+        origin = pts + PROBE_EPS * normal
+
+        def radiance(idx, wi):
+            return self.net(ctx, gb, fov, origin[idx], wi, b[idx], generator)["radiance"]
+
+        mat = gb["material"][b, :, row, col]
+        diffuse, specular = estimate(
+            radiance, normal, wo, gb["albedo"][b, :, row, col], mat[:, 0], mat[:, 1], spp, generator
+        )
+        return diffuse + specular, batch["im"][b, :, row, col], b
+
+    def sample_pixels(self, mask: torch.Tensor, per_image: int) -> torch.Tensor:
+        """Random valid flat pixel indices, per_image from each image (fewer if it has fewer)."""
+        B = mask.shape[0]
+        flat = mask.reshape(B, -1)
+        out = []
+        for bi in range(B):
+            valid = torch.nonzero(flat[bi]).squeeze(-1)
+            pick = valid[torch.randperm(len(valid), generator=self.generator)[:per_image].to(valid.device)]
+            out.append(pick + bi * flat.shape[1])
+        return torch.cat(out)
+
+    # ------------------------------------------------------------------ Lightning
+    def training_step(self, batch, batch_idx):
+        fov = self.fov(batch)
+        gb = self.gbuffers(batch)
+        ctx = self.net.encode(batch["im"], gb["depth"], fov)
+        scale = ctx["scale"]
+        losses = {}
+        rays = []
+        for kind, n in (("surf", self.probes), ("free", self.free_probes)):
+            r = probe_rays(batch["light"], kind, n, self.texels, self.generator, self.device)
+            if r is not None:
+                rays.append(r)
+        if rays:
+            o, d, target, bidx, _ = (torch.cat(x) for x in zip(*rays, strict=True))
+            pred = self.net(ctx, gb, fov, o, d, bidx, self.generator)["radiance"]
+            losses["light"] = relative_mse(pred, target)
+        pix = self.sample_pixels(batch["mask"][:, 0], self.pixels)
+        rgb, target, b = self.render(ctx, gb, batch, fov, pix, self.spp, self.generator)
+        losses["render"] = (((rgb - target) / scale[b, None]) ** 2).mean()
+        total = losses.get("light", 0.0) + self.render_weight * losses["render"]
+        bs = batch["im"].shape[0]
+        self.log("train/loss", total, prog_bar=True, on_step=True, on_epoch=True, batch_size=bs)
+        for k, v in losses.items():
+            self.log(f"train/loss_{k}", v, on_step=False, on_epoch=True, batch_size=bs)
+        return total
+
+    @torch.no_grad()
+    def evaluate_batch(self, batch) -> dict[str, float]:
+        """Light errors at every probe texel (surface and free separately) and the re-render PSNR / relative
+        MSE on the stride grid of valid pixels at eval_spp (fixed generator: comparable across runs)."""
+        gen = torch.Generator().manual_seed(1234)
+        fov = self.fov(batch)
+        gb = self.gbuffers(batch)
+        ctx = self.net.encode(batch["im"], gb["depth"], fov)
+        out = {}
+        for kind in ("surf", "free"):
+            r = probe_rays(batch["light"], kind, None, None, gen, self.device)
+            if r is None:
+                continue
+            o, d, target, bidx, _ = r
+            pred = torch.cat(
+                [
+                    self.net(ctx, gb, fov, o[i : i + 8192], d[i : i + 8192], bidx[i : i + 8192], gen)["radiance"]
+                    for i in range(0, len(o), 8192)
+                ]
+            )
+            out[f"{kind}_light_relmse"] = float(relative_mse(pred, target))
+            out[f"{kind}_light_log_l1"] = float(log_l1(pred, target))
+        B, _, H, W = batch["im"].shape
+        grid = torch.zeros(B, H, W, dtype=torch.bool, device=self.device)
+        grid[:, :: self.eval_stride, :: self.eval_stride] = True
+        pix = torch.nonzero((grid & batch["mask"][:, 0]).reshape(-1)).squeeze(-1)
+        rgb, target, b = self.render(ctx, gb, batch, fov, pix, self.eval_spp, gen)
+        out["render_psnr"] = float(psnr_tonemapped(rgb, target, ctx["scale"][b]))
+        out["render_relmse"] = float((((rgb - target) / (target.abs() + 1e-2 * ctx["scale"][b, None])) ** 2).mean())
+        return out
+
+    def validation_step(self, batch, batch_idx):
+        for k, v in self.evaluate_batch(batch).items():
+            self.log(f"val/{k}", v, batch_size=batch["im"].shape[0])
+
+    def test_step(self, batch, batch_idx):
+        row = self.evaluate_batch(batch)
+        self.eval_rows.append(row)
+        for k, v in row.items():
+            self.log(f"test/{k}", v, batch_size=batch["im"].shape[0])
+
+    def configure_optimizers(self):
+        return self.optimizer_fn(self.net.parameters())

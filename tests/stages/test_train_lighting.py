@@ -1,0 +1,80 @@
+"""Stage `train_lighting` on the micro profile: every LightNet option takes a step; the stage reports."""
+
+import numpy as np
+import pytest
+import torch
+
+from tests.conftest import CONF, compose_cfg
+
+pytestmark = pytest.mark.slow
+OPTIONS = sorted(p.stem for p in (CONF / "model" / "light_net").glob("*.yaml"))
+
+
+def _cfg(shards, tmp, *extra):
+    return compose_cfg(
+        "train_lighting",
+        [
+            "profile=micro",
+            f"data_dir={shards}",
+            f"paths.outputs={tmp}/outputs",
+            f"paths.reports={tmp}/reports",
+            "progress=false",
+            "gbuffers=ground_truth",
+            "batch_size=2",
+            *extra,
+        ],
+    )
+
+
+@pytest.mark.parametrize("option", OPTIONS)
+@pytest.mark.parametrize("mode", ("mixed", "ssrt_only", "out_of_view_only"))
+def test_every_light_net_option_takes_a_training_step(micro_shards, tmp_path, option, mode):
+    from pipeline.data.datamodules import InteriorVerseDataModule
+    from pipeline.systems.lighting import LightingSystem
+
+    if option == "paper" and mode != "mixed":
+        pytest.skip("the paper sizes are checked in the paper's mode")
+    cfg = _cfg(
+        micro_shards,
+        tmp_path,
+        f"model/light_net={option}",
+        f"model.light_net.mode={mode}",
+        "model.light_net.ssrt_compiled=false",
+        "lighting.pixels=8",
+        "lighting.spp=2",
+    )
+    system = LightingSystem(
+        light_net=dict(cfg.model.light_net),
+        material=None,
+        gbuffers="ground_truth",
+        pixels=8,
+        spp=2,
+        probes=2,
+        texels=4,
+        free_probes=1,
+        optimizer=lambda p: torch.optim.AdamW(p, 1e-3),
+    )
+    dm = InteriorVerseDataModule(micro_shards, batch_size=2, lighting=True)
+    batch = next(iter(dm.train_dataloader()))
+    loss = system.training_step(batch, 0)
+    loss.backward()
+    assert torch.isfinite(loss)
+    grads = [p.grad for p in system.net.parameters() if p.grad is not None]
+    assert grads and all(torch.isfinite(g).all() for g in grads)
+
+
+def test_stage_reports_mode_metrics_and_baselines(micro_shards, tmp_path):
+    from stages import train_lighting
+
+    metrics = train_lighting.run(_cfg(micro_shards, tmp_path, "lighting.pixels=16", "lighting.eval_stride=8"))
+    for key in (
+        "mixed/test/surf_light_relmse",
+        "mixed/test/render_psnr",
+        "baseline/constant/render_psnr",
+        "baseline/gt_probes/render_psnr_at_probes",
+        "baseline/model/render_psnr_at_probes",
+        "mixed/val/render_psnr_before_training",
+    ):
+        assert np.isfinite(metrics[key]), key
+    assert (tmp_path / "outputs" / "train_lighting" / "model.pt").is_file()
+    assert (tmp_path / "reports" / "train_lighting" / "metrics.json").is_file()
