@@ -1,0 +1,196 @@
+"""`python -m pipeline.bench.light_net`: LightNet speed per branch and mode, and what the out-of-view
+query threshold saves.
+
+1. Queries per second of the local branch, the out-of-view branch and each mode (SSRT included) on the
+   analytic box room with random G-buffers, and the full-frame re-render time (MC layer, 16 spp, every
+   valid pixel) at 160x120 and 320x240.
+2. With the trained model (outputs/train_lighting/model.pt, when present) on the test views: re-render
+   PSNR, light errors and the fraction of out-of-view queries for several thresholds (0 = the paper's
+   evaluate-everything).
+Writes reports/bench/light_net.json and a PNG.
+"""
+
+from __future__ import annotations
+
+import argparse
+import time
+from pathlib import Path
+
+import matplotlib
+
+matplotlib.use("Agg")
+import matplotlib.pyplot as plt  # noqa: E402
+import torch  # noqa: E402
+from tqdm import tqdm  # noqa: E402
+
+from pipeline.bench.common import median_seconds, publish  # noqa: E402
+from pipeline.bench.scenes import BoxRoom, ssrt_rays  # noqa: E402
+from pipeline.models.light_net import MODES, LightNet  # noqa: E402
+from pipeline.ops.mc import estimate  # noqa: E402
+
+SMALL = {
+    "local": {"backbone": "small", "levels": 3, "frequencies": 4, "hidden": 64, "layers": 3},
+    "out_of_view": {
+        "backbone": "small",
+        "feature_dim": 64,
+        "nerf_hidden": 32,
+        "nerf_layers": 2,
+        "frequencies": 6,
+        "dir_frequencies": 4,
+        "samples": 16,
+    },
+}
+
+
+def _scene(H: int, W: int, fov: float = 85.0, rays_per_pixel: int = 1):
+    room = BoxRoom.default(torch.float32)
+    depth, normal = room.render(H, W, fov)
+    g = torch.Generator().manual_seed(0)
+    gb = {
+        "depth": depth.float(),
+        "normal": normal.float(),
+        "albedo": torch.rand(1, 3, H, W, generator=g),
+        "material": torch.rand(1, 2, H, W, generator=g),
+    }
+    o, wi = ssrt_rays(depth, normal, fov, rays_per_pixel, g)
+    return gb, torch.rand(1, 3, H, W, generator=g) * 3, fov, o.float(), wi.float()
+
+
+@torch.no_grad()
+def speed(resolutions, repeats: int) -> list[dict]:
+    return [_mode_row(mode, H, W, repeats) for H, W in tqdm(resolutions, desc="light_net speed") for mode in MODES]
+
+
+def _mode_row(mode: str, H: int, W: int, repeats: int) -> dict:
+    from pipeline.models.light_net import _gbuffer_at, trace_views
+    from pipeline.ops.camera import backproject
+
+    gb, im, fov, o, wi = _scene(H, W)
+    bidx = torch.zeros(len(o), dtype=torch.long)
+    torch.manual_seed(0)
+    net = LightNet(mode=mode, **SMALL).eval()
+    ctx = net.encode(im, gb["depth"], fov)
+    sec = median_seconds(lambda: net(ctx, gb, fov, o, wi, bidx), repeats)
+    row = {"height": H, "width": W, "mode": mode, "rays": len(o), "queries_per_second": len(o) / sec}
+    if mode != "mixed":
+        return row
+    # per branch, on the same rays
+    pixel, hit, _ = trace_views(gb, fov, o, wi, bidx)
+    h = torch.nonzero(hit).squeeze(-1)
+    gbh = _gbuffer_at(gb, bidx[h], pixel[h])
+    t_local = median_seconds(
+        lambda: net.local.query(ctx["local"], ctx["scale"], bidx[h], pixel[h], (H, W), wi[h], gbh), repeats
+    )
+    t_out = median_seconds(
+        lambda: net.out_of_view.query(ctx["feature"], ctx["params"], ctx["scale"], ctx["bounds"], bidx, o, wi),
+        repeats,
+    )
+    row["local_queries_per_second"] = len(h) / t_local
+    row["out_of_view_queries_per_second"] = len(o) / t_out
+    # full-frame re-render: every valid pixel, 16 spp through the MC layer
+    mask = gb["depth"][0] > 0
+    n = torch.nn.functional.normalize(gb["normal"][0].permute(1, 2, 0)[mask], dim=-1)
+    pts = backproject(gb["depth"], fov)[0][mask]
+    origin = pts + 1e-3 * n
+    pb = torch.zeros(len(pts), dtype=torch.long)
+    t0 = time.perf_counter()
+    estimate(
+        lambda idx, d: net(ctx, gb, fov, origin[idx], d, pb[idx])["radiance"],
+        n,
+        torch.nn.functional.normalize(-pts, dim=-1),
+        gb["albedo"][0].permute(1, 2, 0)[mask],
+        gb["material"][0, 0][mask],
+        gb["material"][0, 1][mask],
+        16,
+        torch.Generator().manual_seed(0),
+    )
+    row["rerender_seconds_16spp"] = time.perf_counter() - t0
+    row["rerender_pixels"] = int(mask.sum())
+    return row
+
+
+@torch.no_grad()
+def thresholds(model_path: Path, data_dir: str, values=(0.0, 0.25, 0.5, 0.9)) -> list[dict]:
+    """Re-render PSNR, light errors and out-of-view query fraction of the trained model per threshold."""
+    from pipeline.data.datamodules import InteriorVerseDataModule
+
+    blob = torch.load(model_path, map_location="cpu", weights_only=True)
+    dm = InteriorVerseDataModule(data_dir, batch_size=4, lighting=True)
+    dm.setup("test")
+    return [_threshold_row(t, blob, dm) for t in tqdm(values, desc="out-of-view threshold")]
+
+
+class _CountingLightNet(LightNet):
+    """LightNet that adds up how many rays it saw and how many went to the out-of-view branch."""
+
+    queries = total = 0
+
+    def forward(self, *args, **kwargs):
+        out = super().forward(*args, **kwargs)
+        self.queries += out["out_queries"]
+        self.total += len(out["u"])
+        return out
+
+
+def _threshold_row(t: float, blob: dict, dm) -> dict:
+    from pipeline.systems.lighting import LightingSystem
+
+    cfg = {**blob["light_net"], "mode": "mixed", "out_threshold": t}
+    system = LightingSystem(light_net=cfg, material=None, gbuffers="ground_truth")
+    system.net = _CountingLightNet(**cfg)
+    system.net.load_state_dict(blob["state_dict"])
+    system.eval()
+    acc = [system.evaluate_batch(batch) for batch in dm.plain_loader("test")]
+    row = {k: sum(r[k] for r in acc) / len(acc) for k in acc[0]}
+    row.update({"out_threshold": t, "out_of_view_query_fraction": system.net.queries / max(system.net.total, 1)})
+    return row
+
+
+def run(
+    resolutions=((120, 160), (240, 320)),
+    repeats: int = 3,
+    model_path="outputs/train_lighting/model.pt",
+    data_dir="outputs/preprocess",
+) -> dict:
+    report = {"threads": torch.get_num_threads(), "sizes": SMALL, "speed": speed(resolutions, repeats)}
+    if Path(model_path).is_file():
+        report["thresholds"] = thresholds(Path(model_path), data_dir)
+        report["thresholds_model"] = str(model_path)
+    else:
+        report["thresholds"] = []
+        report["thresholds_note"] = f"{model_path} not found: run `dvc repro train_lighting` for the threshold sweep"
+    return report
+
+
+def plot(report: dict, path) -> None:
+    fig, axes = plt.subplots(1, 2, figsize=(9, 3.2))
+    for H, W in sorted({(r["height"], r["width"]) for r in report["speed"]}):
+        rs = [r for r in report["speed"] if r["height"] == H]
+        axes[0].bar([f"{r['mode']}\n{W}x{H}" for r in rs], [r["queries_per_second"] / 1e3 for r in rs])
+    axes[0].set_ylabel("thousand queries / s")
+    axes[0].tick_params(axis="x", labelsize=6)
+    th = report.get("thresholds") or []
+    if th:
+        ax = axes[1]
+        ax.plot([r["out_of_view_query_fraction"] for r in th], [r["render_psnr"] for r in th], "o-")
+        for r in th:
+            ax.annotate(f"t={r['out_threshold']}", (r["out_of_view_query_fraction"], r["render_psnr"]), fontsize=7)
+        ax.set_xlabel("fraction of rays sent to the out-of-view branch")
+        ax.set_ylabel("re-render PSNR (dB)")
+    fig.tight_layout()
+    fig.savefig(path, dpi=120)
+    plt.close(fig)
+
+
+def main(argv=None) -> None:
+    p = argparse.ArgumentParser(description=__doc__)
+    p.add_argument("--repeats", type=int, default=3)
+    p.add_argument("--model", default="outputs/train_lighting/model.pt")
+    p.add_argument("--data-dir", default="outputs/preprocess")
+    a = p.parse_args(argv)
+    report = run(repeats=a.repeats, model_path=a.model, data_dir=a.data_dir)
+    print(publish("light_net", report, plot))
+
+
+if __name__ == "__main__":
+    main()
