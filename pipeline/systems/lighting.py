@@ -27,6 +27,12 @@ def relative_mse(pred: torch.Tensor, target: torch.Tensor, eps: float = 1e-3) ->
     return (((pred - target) / (pred.detach() + eps)) ** 2).mean()
 
 
+def relative_mse_metric(pred: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
+    """sum((L^ - L)^2) / sum(L^2): the squared error relative to the light's own energy (a metric; the
+    training loss's prediction-normalised form explodes wherever an untrained model predicts ~0)."""
+    return ((pred - target) ** 2).sum() / (target**2).sum().clamp(min=1e-12)
+
+
 def log_l1(pred: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
     return (torch.log1p(pred.clamp(min=0)) - torch.log1p(target.clamp(min=0))).abs().mean()
 
@@ -208,7 +214,7 @@ class LightingSystem(L.LightningModule):
                     for i in range(0, len(o), 8192)
                 ]
             )
-            out[f"{kind}_light_relmse"] = float(relative_mse(pred, target))
+            out[f"{kind}_light_relmse"] = float(relative_mse_metric(pred, target))
             out[f"{kind}_light_log_l1"] = float(log_l1(pred, target))
         B, _, H, W = batch["im"].shape
         grid = torch.zeros(B, H, W, dtype=torch.bool, device=self.device)

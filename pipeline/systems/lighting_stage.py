@@ -23,7 +23,7 @@ from pipeline.systems.lighting import (
     log_l1,
     probe_rays,
     psnr_tonemapped,
-    relative_mse,
+    relative_mse_metric,
 )
 from pipeline.tracking import stage_run, write_metrics
 
@@ -52,7 +52,7 @@ def baseline_metrics(batch: dict, constant: torch.Tensor, spp: int, stride: int,
         r = probe_rays(batch["light"], kind, None, None, gen, "cpu")
         if r is not None:
             pred = constant.expand_as(r[2])
-            out[f"constant/{kind}_light_relmse"] = float(relative_mse(pred, r[2]))
+            out[f"constant/{kind}_light_relmse"] = float(relative_mse_metric(pred, r[2]))
             out[f"constant/{kind}_light_log_l1"] = float(log_l1(pred, r[2]))
     B, _, H, W = batch["im"].shape
     scale = batch["im"].clamp(min=0).mean(dim=(1, 2, 3)).clamp(min=1e-6)
