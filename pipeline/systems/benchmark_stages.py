@@ -21,6 +21,7 @@ from pipeline.metrics import normal as normal_metrics
 from pipeline.metrics.synthetic import material_metrics
 from pipeline.metrics.whdr import whdr
 from pipeline.systems.material_predict import EXPORT_FORMAT, load_material_model, predict_maps
+from pipeline.systems.trainer import stage_trainer
 from pipeline.tracking import stage_run, write_metrics
 
 # Zhu et al. 2022, Table (NYUv2 normals and depth, IIW albedo): published numbers, for reference only
@@ -79,7 +80,6 @@ def _synthetic_views(data_dir) -> list[dict]:
 def run_finetune(cfg: DictConfig) -> dict[str, float]:
     import lightning as L
     import mlflow
-    from lightning.pytorch.loggers import MLFlowLogger
     from lightning.pytorch.utilities import CombinedLoader
 
     from pipeline.systems.finetune import FinetuneSystem
@@ -122,21 +122,17 @@ def run_finetune(cfg: DictConfig) -> dict[str, float]:
     out, report = Path(cfg.out_dir), Path(cfg.report_dir)
     with stage_run("finetune", cfg, tags=tags) as run:
         mlflow.log_params({"iiw_source": roots["iiw"][1], "nyuv2_source": roots["nyuv2"][1], "iiw_train": len(iiw_ids)})
-        logger = MLFlowLogger(
-            experiment_name=mlflow.get_experiment(run.info.experiment_id).name,
-            tracking_uri=mlflow.get_tracking_uri(),
-            run_id=run.info.run_id,
-        )
-        trainer = L.Trainer(
-            max_epochs=int(ft.epochs),
-            logger=logger,
-            default_root_dir=str(out),
-            enable_progress_bar=bool(cfg.progress),
-            enable_model_summary=False,
-            deterministic=True,
-            gradient_clip_val=1.0,
-            log_every_n_steps=5,
-            enable_checkpointing=False,
+        trainer = stage_trainer(
+            run,
+            {
+                "max_epochs": int(ft.epochs),
+                "deterministic": True,
+                "gradient_clip_val": 1.0,
+                "log_every_n_steps": 5,
+                "enable_checkpointing": False,
+            },
+            out,
+            progress=bool(cfg.progress),
         )
         trainer.fit(system, train_dataloaders=CombinedLoader(loaders, mode="max_size_cycle"))
         trainer.save_checkpoint(out / "checkpoints" / "last.ckpt", weights_only=True)

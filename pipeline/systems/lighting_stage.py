@@ -25,6 +25,7 @@ from pipeline.systems.lighting import (
     psnr_tonemapped,
     relative_mse_metric,
 )
+from pipeline.systems.trainer import stage_trainer
 from pipeline.tracking import stage_run, write_metrics
 
 
@@ -110,7 +111,6 @@ def run_train_lighting(cfg: DictConfig) -> dict[str, float]:
     import lightning as L
     import mlflow
     from lightning.pytorch.callbacks import ModelCheckpoint
-    from lightning.pytorch.loggers import MLFlowLogger
 
     L.seed_everything(int(cfg.seed), workers=True, verbose=False)
     material = None
@@ -143,22 +143,10 @@ def run_train_lighting(cfg: DictConfig) -> dict[str, float]:
     source = read_manifest(cfg.data_dir).get("source", "unspecified")
     mode = str(cfg.model.light_net.mode)
     with stage_run("train_lighting", cfg, tags={"data_source": source, "mode": mode}) as run:
-        logger = MLFlowLogger(
-            experiment_name=mlflow.get_experiment(run.info.experiment_id).name,
-            tracking_uri=mlflow.get_tracking_uri(),
-            run_id=run.info.run_id,
-        )
         ckpt = ModelCheckpoint(
             dirpath=out / "checkpoints", filename="best", monitor="val/render_psnr", mode="max", save_last=True
         )
-        trainer = L.Trainer(
-            **OmegaConf.to_container(cfg.trainer, resolve=True),
-            logger=logger,
-            callbacks=[ckpt],
-            default_root_dir=str(out),
-            enable_progress_bar=bool(cfg.progress),
-            enable_model_summary=False,
-        )
+        trainer = stage_trainer(run, OmegaConf.to_container(cfg.trainer, resolve=True), out, [ckpt], bool(cfg.progress))
         # the first validation pass (before any training step) records the starting re-render PSNR
         start = trainer.validate(system, datamodule=dm, verbose=False)[0]
         trainer.fit(system, datamodule=dm)

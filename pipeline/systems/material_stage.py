@@ -19,6 +19,7 @@ from pipeline.models.material_net import parameter_count
 from pipeline.systems.material import METRICS, MaterialSystem
 from pipeline.systems.material_baselines import MaterialBaselines, accuracy_gate
 from pipeline.systems.material_predict import EXPORT_FORMAT
+from pipeline.systems.trainer import stage_trainer
 from pipeline.tracking import stage_run, write_metrics
 from pipeline.tracking.figures import map_comparison
 
@@ -93,7 +94,6 @@ def run_train_material(cfg: DictConfig) -> dict[str, float]:
     import lightning as L
     import mlflow
     from lightning.pytorch.callbacks import ModelCheckpoint
-    from lightning.pytorch.loggers import MLFlowLogger
 
     L.seed_everything(int(cfg.seed), workers=True, verbose=False)
     out, report = Path(cfg.out_dir), Path(cfg.report_dir)
@@ -112,20 +112,8 @@ def run_train_material(cfg: DictConfig) -> dict[str, float]:
                 "model.parameters": parameter_count(system.net),
             }
         )
-        logger = MLFlowLogger(
-            experiment_name=mlflow.get_experiment(run.info.experiment_id).name,
-            tracking_uri=mlflow.get_tracking_uri(),
-            run_id=run.info.run_id,
-        )
         ckpt = ModelCheckpoint(dirpath=ckpt_dir, filename="best", monitor="val/loss", mode="min", save_last=True)
-        trainer = L.Trainer(
-            **OmegaConf.to_container(cfg.trainer, resolve=True),
-            logger=logger,
-            callbacks=[ckpt],
-            default_root_dir=str(out),
-            enable_progress_bar=bool(cfg.progress),
-            enable_model_summary=False,
-        )
+        trainer = stage_trainer(run, OmegaConf.to_container(cfg.trainer, resolve=True), out, [ckpt], bool(cfg.progress))
         trainer.fit(system, datamodule=dm, ckpt_path=resume)
         best = ckpt.best_model_path or ckpt.last_model_path
         state = torch.load(best, map_location="cpu", weights_only=True)["state_dict"]

@@ -14,6 +14,13 @@ import torch  # noqa: E402
 from pipeline.data.synth.figures import tonemap  # noqa: E402
 
 
+def save(fig, path: str | Path, title: str = "") -> Path:
+    """Title, tight layout, write the PNG (creating its folder), close the figure."""
+    if title:
+        fig.suptitle(title, fontsize=9)
+    return save(fig, path)
+
+
 def _display(key: str, x: torch.Tensor, mask: torch.Tensor | None = None, depth_max: float | None = None):
     """(C, H, W) map -> (H, W, 3) or (H, W) array in [0, 1] for display."""
     x = x.detach().float().cpu()
@@ -63,14 +70,7 @@ def map_comparison(pred: dict, batch: dict, path: str | Path, title: str = "") -
                     ax.set_title(key, fontsize=8)
                 if c == 0:
                     ax.set_ylabel(f"{src}\n{batch['id'][v]}", fontsize=6)
-    if title:
-        fig.suptitle(title, fontsize=9)
-    fig.tight_layout()
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(path, dpi=90)
-    plt.close(fig)
-    return path
+    return save(fig, path, title)
 
 
 def prediction_sheet(im: np.ndarray, maps: dict[str, np.ndarray], path: str | Path, title: str = "") -> Path:
@@ -91,14 +91,7 @@ def prediction_sheet(im: np.ndarray, maps: dict[str, np.ndarray], path: str | Pa
             fig.colorbar(shown, ax=ax, fraction=0.046)
         ax.set_title(name, fontsize=8)
         ax.set_xticks([]), ax.set_yticks([])
-    if title:
-        fig.suptitle(title, fontsize=9)
-    fig.tight_layout()
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(path, dpi=90)
-    plt.close(fig)
-    return path
+    return save(fig, path, title)
 
 
 def ranked_cases(net, meta, nyu_root, rows: list[dict], key: str, path: str | Path, k: int = 3) -> Path:
@@ -134,9 +127,4 @@ def ranked_cases(net, meta, nyu_root, rows: list[dict], key: str, path: str | Pa
         axes[0], ("input", "normal gt", "normal pred", "depth gt (m)", "depth pred (scaled)"), strict=True
     ):
         ax.set_title(title, fontsize=8)
-    fig.tight_layout()
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(path, dpi=90)
-    plt.close(fig)
-    return path
+    return save(fig, path)
