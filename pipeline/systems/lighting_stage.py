@@ -150,7 +150,8 @@ def run_train_lighting(cfg: DictConfig) -> dict[str, float]:
         # the first validation pass (before any training step) records the starting re-render PSNR
         start = trainer.validate(system, datamodule=dm, verbose=False)[0]
         trainer.fit(system, datamodule=dm)
-        after = float(trainer.callback_metrics["val/render_psnr"])
+        # validation may not fall on the last epoch (check_val_every_n_epoch): measure the end state
+        after = float(trainer.validate(system, datamodule=dm, verbose=False)[0]["val/render_psnr"])
         trainer.test(system, datamodule=dm, verbose=False)
         metrics = {f"{mode}/{k}": float(v) for k, v in trainer.callback_metrics.items() if k.startswith("test/")}
         metrics[f"{mode}/val/render_psnr_before_training"] = float(start["val/render_psnr"])

@@ -18,7 +18,12 @@ def save(fig, path: str | Path, title: str = "") -> Path:
     """Title, tight layout, write the PNG (creating its folder), close the figure."""
     if title:
         fig.suptitle(title, fontsize=9)
-    return save(fig, path)
+    fig.tight_layout()
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(path, dpi=90)
+    plt.close(fig)
+    return path
 
 
 def _display(key: str, x: torch.Tensor, mask: torch.Tensor | None = None, depth_max: float | None = None):
