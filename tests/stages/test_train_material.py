@@ -11,7 +11,7 @@ import torch
 
 from tests.conftest import CONF, compose_cfg
 
-pytestmark = pytest.mark.slow
+pytestmark = [pytest.mark.slow, pytest.mark.xdist_group("train_material")]  # one worker runs the module fixture
 BACKBONES = sorted(p.stem for p in (CONF / "model" / "material_net").glob("*.yaml"))
 
 
@@ -25,6 +25,7 @@ def _cfg(shards, tmp, *extra):
             f"paths.reports={tmp}/reports",
             "progress=false",
             "system_metrics=false",
+            "tracking.experiment=test-train-material",  # other test modules train too, in parallel
             *extra,
         ],
     )
@@ -73,7 +74,10 @@ def test_stage_writes_reports_checkpoints_and_tracks(trained):
         tmp / "outputs" / "train_material" / "checkpoints" / "last.ckpt"
     ).is_file()
     assert (tmp / "reports" / "train_material" / "test_maps.png").stat().st_size > 5_000
-    runs = mlflow.search_runs(experiment_names=["invrender"], filter_string="tags.stage = 'train_material'")
+    runs = mlflow.search_runs(
+        experiment_names=["test-train-material"],
+        filter_string="tags.stage = 'train_material' and attributes.status = 'FINISHED'",
+    )
     row = runs.iloc[0]
     assert row["tags.data_source"] == "synthetic" and row["params.loss.perceptual_on"] == "False"
     assert row["params.model.material_net.backbone"] == "small" and np.isfinite(row["metrics.train/loss_epoch"])
