@@ -81,7 +81,8 @@ def baseline_metrics(batch: dict, constant: torch.Tensor, spp: int, stride: int,
     grid = torch.zeros(B, H, W, dtype=torch.bool)
     grid[:, ::stride, ::stride] = True
     pix = torch.nonzero((grid & batch["mask"][:, 0]).reshape(-1)).squeeze(-1)
-    rgb, target, b = shade(pix, lambda idx, wi, b, o: constant.expand(len(wi), 3), system.gbuffers(batch))
+    model_gb = system.gbuffers(batch)  # what the model sees (predicted or ground truth, per config)
+    rgb, target, b = shade(pix, lambda idx, wi, b, o: constant.expand(len(wi), 3), model_gb)
     out["constant/render_psnr"] = float(psnr_tonemapped(rgb, target, scale[b]))
     # ground-truth probes: the texel of each probe's hemisphere nearest to the direction
     probe_pix, probe_dirs, probe_rad = [], [], []
@@ -101,8 +102,8 @@ def baseline_metrics(batch: dict, constant: torch.Tensor, spp: int, stride: int,
 
     rgb, target, b = shade(pp, probe_light, gt)
     out["gt_probes/render_psnr_at_probes"] = float(psnr_tonemapped(rgb, target, scale[b]))
-    ctx = system.net.encode(batch["im"], system.gbuffers(batch)["depth"], fov)
-    model_rgb, target, b = system.render(ctx, system.gbuffers(batch), batch, fov, pp, spp, gen)
+    ctx = system.net.encode(batch["im"], model_gb["depth"], fov)
+    model_rgb, target, b = system.render(ctx, model_gb, batch, fov, pp, spp, gen)
     out["model/render_psnr_at_probes"] = float(psnr_tonemapped(model_rgb, target, scale[b]))
     return out
 

@@ -69,7 +69,6 @@ class LightNet(nn.Module):
         N = len(wi)
         pixel, hit, gap = trace_views(gbuffer, fov_x, origin.detach(), wi.detach(), batch_index, self.ssrt_compiled)
         u = confidence(hit, gap.to(wi.dtype), self.k)
-        radiance = wi.new_zeros(N, 3)
         l_ssrt = wi.new_zeros(N, 3)
         if self.local is not None and hit.any():
             h = torch.nonzero(hit).squeeze(-1)
