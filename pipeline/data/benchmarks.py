@@ -82,8 +82,7 @@ class NYUSet(Dataset):
         self.root, self.size = Path(root), tuple(size)
         self.mat = self.root / "nyu_depth_v2_labeled.mat"
         self.indices = nyuv2.read_splits(self.root / "splits.mat", nyuv2.count_images(self.mat))[split]
-        images, depths = nyuv2.read_labeled(self.mat, self.indices)
-        self.images, self.depths = images, depths
+        self.images, self.depths = nyuv2.read_labeled(self.mat, self.indices)
 
     def __len__(self):
         return len(self.indices)

@@ -20,7 +20,7 @@ from pipeline.metrics import depth as depth_metrics
 from pipeline.metrics import normal as normal_metrics
 from pipeline.metrics.synthetic import material_metrics
 from pipeline.metrics.whdr import whdr
-from pipeline.systems.material_predict import EXPORT_FORMAT, load_material_model, predict_maps
+from pipeline.systems.material_predict import load_material_model, predict_maps, save_material_model
 from pipeline.systems.trainer import stage_trainer
 from pipeline.tracking import stage_run, write_metrics
 
@@ -136,13 +136,14 @@ def run_finetune(cfg: DictConfig) -> dict[str, float]:
         )
         trainer.fit(system, train_dataloaders=CombinedLoader(loaders, mode="max_size_cycle"))
         trainer.save_checkpoint(out / "checkpoints" / "last.ckpt", weights_only=True)
-        export = {
-            **meta,
-            "format": EXPORT_FORMAT,
-            "state_dict": {k: v.cpu() for k, v in system.net.state_dict().items()},
-        }
-        export["finetuned_on"] = [roots["iiw"][1], roots["nyuv2"][1]]
-        torch.save(export, out / "model.pt")
+        save_material_model(
+            out / "model.pt",
+            meta["model"],
+            system.net,
+            size,
+            meta.get("depth_scale", 1.0),
+            finetuned_on=[roots["iiw"][1], roots["nyuv2"][1]],
+        )
         logged = {k: float(v) for k, v in trainer.callback_metrics.items() if k.endswith("_epoch") or "loss_" in k}
         metrics = {k.replace("finetune/", ""): v for k, v in logged.items()}
         metrics.update({"global_step": float(trainer.global_step), "iiw_train_images": float(len(iiw_ids))})

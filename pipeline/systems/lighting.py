@@ -79,6 +79,39 @@ def probe_rays(lights: list[dict], kind: str, probes: int | None, texels: int | 
     return tuple(torch.cat(x).to(device) for x in (origins, dirs, rads, bidx, pix))
 
 
+def grid_pixels(mask: torch.Tensor, stride: int) -> torch.Tensor:
+    """Flat indices (into B*H*W) of the valid pixels of mask (B, H, W) on every `stride`-th row and column."""
+    grid = torch.zeros_like(mask)
+    grid[:, ::stride, ::stride] = True
+    return torch.nonzero((grid & mask).reshape(-1)).squeeze(-1)
+
+
+def render_pixels(gbuffer: dict, im: torch.Tensor, fov, pixels: torch.Tensor, radiance, spp: int, generator):
+    """Re-render flat pixel indices (M,) (into B*H*W) of G-buffers (depth (B, H, W) z-depth m, normal,
+    albedo (B, 3, H, W), material (B, 2, H, W)) with the MC estimator. radiance(idx, origin, wi, image)
+    -> (K, 3) gives the light for K samples of pixels idx (K,) (origins just above their surface, image
+    indices (K,)). Returns rgb (M, 3), the input im at those pixels (M, 3) and their image index (M,)."""
+    B, _, H, W = im.shape
+    b = pixels // (H * W)
+    rc = pixels % (H * W)
+    row, col = rc // W, rc % W
+    pts = backproject_views(gbuffer["depth"], fov)[b, row, col]
+    normal = torch.nn.functional.normalize(gbuffer["normal"][b, :, row, col], dim=-1)
+    origin = pts + PROBE_EPS * normal
+    mat = gbuffer["material"][b, :, row, col]
+    diffuse, specular = estimate(
+        lambda idx, wi: radiance(idx, origin[idx], wi, b[idx]),
+        normal,
+        torch.nn.functional.normalize(-pts, dim=-1),
+        gbuffer["albedo"][b, :, row, col],
+        mat[:, 0],
+        mat[:, 1],
+        spp,
+        generator,
+    )
+    return diffuse + specular, im[b, :, row, col], b
+
+
 class LightingSystem(L.LightningModule):
     """light_net: LightNet kwargs; material: {"model": kwargs, "state_dict": ..., "depth_scale": s} of the
     frozen MaterialNet, used when gbuffers == "predicted"; see the module docstring for the step."""
@@ -137,25 +170,13 @@ class LightingSystem(L.LightningModule):
         """(B,) horizontal FOV of each view, degrees (views of a batch may differ)."""
         return batch["fov_x_deg"].float()
 
-    def render(self, ctx, gb, batch, fov, pixels: torch.Tensor, spp: int, generator, with_grad: bool = True):
-        """Re-render flat pixel indices (M,) (into B*H*W) with LightNet light -> (rgb (M, 3), input (M, 3))."""
-        B, _, H, W = batch["im"].shape
-        b = pixels // (H * W)
-        rc = pixels % (H * W)
-        row, col = rc // W, rc % W
-        pts = backproject_views(gb["depth"], fov)[b, row, col]
-        normal = torch.nn.functional.normalize(gb["normal"][b, :, row, col], dim=-1)
-        wo = torch.nn.functional.normalize(-pts, dim=-1)
-        origin = pts + PROBE_EPS * normal
+    def render(self, ctx, gb, batch, fov, pixels: torch.Tensor, spp: int, generator):
+        """Re-render flat pixel indices (M,) with LightNet light -> (rgb (M, 3), input (M, 3), image (M,))."""
 
-        def radiance(idx, wi):
-            return self.net(ctx, gb, fov, origin[idx], wi, b[idx], generator)["radiance"]
+        def radiance(idx, origin, wi, image):
+            return self.net(ctx, gb, fov, origin, wi, image, generator)["radiance"]
 
-        mat = gb["material"][b, :, row, col]
-        diffuse, specular = estimate(
-            radiance, normal, wo, gb["albedo"][b, :, row, col], mat[:, 0], mat[:, 1], spp, generator
-        )
-        return diffuse + specular, batch["im"][b, :, row, col], b
+        return render_pixels(gb, batch["im"], fov, pixels, radiance, spp, generator)
 
     def sample_pixels(self, mask: torch.Tensor, per_image: int) -> torch.Tensor:
         """Random valid flat pixel indices, per_image from each image (fewer if it has fewer)."""
@@ -216,10 +237,7 @@ class LightingSystem(L.LightningModule):
             )
             out[f"{kind}_light_relmse"] = float(relative_mse_metric(pred, target))
             out[f"{kind}_light_log_l1"] = float(log_l1(pred, target))
-        B, _, H, W = batch["im"].shape
-        grid = torch.zeros(B, H, W, dtype=torch.bool, device=self.device)
-        grid[:, :: self.eval_stride, :: self.eval_stride] = True
-        pix = torch.nonzero((grid & batch["mask"][:, 0]).reshape(-1)).squeeze(-1)
+        pix = grid_pixels(batch["mask"][:, 0], self.eval_stride)
         rgb, target, b = self.render(ctx, gb, batch, fov, pix, self.eval_spp, gen)
         out["render_psnr"] = float(psnr_tonemapped(rgb, target, ctx["scale"][b]))
         out["render_relmse"] = float((((rgb - target) / (target.abs() + 1e-2 * ctx["scale"][b, None])) ** 2).mean())

@@ -15,15 +15,15 @@ from omegaconf import DictConfig, OmegaConf
 
 from pipeline.data.datamodules import InteriorVerseDataModule
 from pipeline.data.datasets import read_manifest
-from pipeline.models.light_net.branches import backproject_views
-from pipeline.ops.mc import estimate
+from pipeline.models.light_net.branches import image_scale
 from pipeline.systems.lighting import (
-    PROBE_EPS,
     LightingSystem,
+    grid_pixels,
     log_l1,
     probe_rays,
     psnr_tonemapped,
     relative_mse_metric,
+    render_pixels,
 )
 from pipeline.systems.trainer import stage_trainer
 from pipeline.tracking import stage_run, write_metrics
@@ -56,33 +56,16 @@ def baseline_metrics(batch: dict, constant: torch.Tensor, spp: int, stride: int,
             out[f"constant/{kind}_light_relmse"] = float(relative_mse_metric(pred, r[2]))
             out[f"constant/{kind}_light_log_l1"] = float(log_l1(pred, r[2]))
     B, _, H, W = batch["im"].shape
-    scale = batch["im"].clamp(min=0).mean(dim=(1, 2, 3)).clamp(min=1e-6)
+    scale = image_scale(batch["im"])
     gt = {k: batch[k] for k in ("albedo", "normal", "material")}
     gt["depth"] = torch.where(batch["mask"][:, 0], batch["depth"][:, 0], torch.zeros_like(batch["depth"][:, 0]))
 
-    def shade(pixels, radiance_fn, gbuf):
-        b, rc = pixels // (H * W), pixels % (H * W)
-        row, col = rc // W, rc % W
-        pts = backproject_views(gbuf["depth"], fov)[b, row, col]
-        n = torch.nn.functional.normalize(gbuf["normal"][b, :, row, col], dim=-1)
-        mat = gbuf["material"][b, :, row, col]
-        d, s = estimate(
-            lambda idx, wi: radiance_fn(idx, wi, b, pts + PROBE_EPS * n),
-            n,
-            torch.nn.functional.normalize(-pts, dim=-1),
-            gbuf["albedo"][b, :, row, col],
-            mat[:, 0],
-            mat[:, 1],
-            spp,
-            torch.Generator().manual_seed(1234),
-        )
-        return d + s, batch["im"][b, :, row, col], b
+    def shade(pixels, radiance, gbuf):  # each baseline render draws the same directions
+        return render_pixels(gbuf, batch["im"], fov, pixels, radiance, spp, torch.Generator().manual_seed(1234))
 
-    grid = torch.zeros(B, H, W, dtype=torch.bool)
-    grid[:, ::stride, ::stride] = True
-    pix = torch.nonzero((grid & batch["mask"][:, 0]).reshape(-1)).squeeze(-1)
+    pix = grid_pixels(batch["mask"][:, 0], stride)
     model_gb = system.gbuffers(batch)  # what the model sees (predicted or ground truth, per config)
-    rgb, target, b = shade(pix, lambda idx, wi, b, o: constant.expand(len(wi), 3), model_gb)
+    rgb, target, b = shade(pix, lambda idx, o, wi, b: constant.expand(len(wi), 3), model_gb)
     out["constant/render_psnr"] = float(psnr_tonemapped(rgb, target, scale[b]))
     # ground-truth probes: the texel of each probe's hemisphere nearest to the direction
     probe_pix, probe_dirs, probe_rad = [], [], []
@@ -96,7 +79,7 @@ def baseline_metrics(batch: dict, constant: torch.Tensor, spp: int, stride: int,
     keep = batch["mask"][:, 0].reshape(-1)[pp]
     pp, dirs, rads = pp[keep], dirs[keep], rads[keep]
 
-    def probe_light(idx, wi, b, o):
+    def probe_light(idx, o, wi, b):
         texel = torch.einsum("mtc,mc->mt", dirs[idx], wi).argmax(-1)
         return rads[idx, texel]
 

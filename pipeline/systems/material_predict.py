@@ -28,6 +28,25 @@ class PredictError(Exception):
     """A bad input image or checkpoint; the message names the file."""
 
 
+def save_material_model(
+    path: str | Path, model: dict, net: MaterialNet, input_size, depth_scale: float, **extra
+) -> Path:
+    """Write the export `load_material_model` reads: plain weights (torch.load(weights_only=True)), the
+    network config, the training resolution (h, w) and the scale that turns its depth into metres."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    blob = {
+        "format": EXPORT_FORMAT,
+        "model": dict(model),
+        "input_size": [int(input_size[0]), int(input_size[1])],
+        "depth_scale": float(depth_scale),
+        "state_dict": {k: v.detach().cpu() for k, v in net.state_dict().items()},
+        **extra,
+    }
+    torch.save(blob, path)
+    return path
+
+
 def load_material_model(path: str | Path) -> tuple[MaterialNet, dict]:
     """Load `model.pt` (exported by train_material) or a Lightning `.ckpt` of MaterialSystem, weights only.
     Returns the network in eval mode and its metadata (model config, resolution, depth scale)."""

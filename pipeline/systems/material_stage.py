@@ -18,27 +18,10 @@ from pipeline.metrics.synthetic import depth_mask, ls_scale
 from pipeline.models.material_net import parameter_count
 from pipeline.systems.material import METRICS, MaterialSystem
 from pipeline.systems.material_baselines import MaterialBaselines, accuracy_gate
-from pipeline.systems.material_predict import EXPORT_FORMAT
+from pipeline.systems.material_predict import save_material_model
 from pipeline.systems.trainer import stage_trainer
 from pipeline.tracking import stage_run, write_metrics
 from pipeline.tracking.figures import map_comparison
-
-
-def export_model(system: MaterialSystem, path: Path, input_size: tuple[int, int], depth_scale: float) -> Path:
-    """Plain weights + network config (loadable with torch.load(weights_only=True)), the training
-    resolution (h, w) and the metric depth scale for `invrender predict`."""
-    path.parent.mkdir(parents=True, exist_ok=True)
-    torch.save(
-        {
-            "format": EXPORT_FORMAT,
-            "model": dict(system.hparams["model"]),
-            "input_size": [int(input_size[0]), int(input_size[1])],
-            "depth_scale": float(depth_scale),
-            "state_dict": {k: v.detach().cpu() for k, v in system.net.state_dict().items()},
-        },
-        path,
-    )
-    return path
 
 
 @torch.no_grad()
@@ -136,9 +119,8 @@ def run_train_material(cfg: DictConfig) -> dict[str, float]:
         if ckpt.best_model_score is not None:
             metrics["best_val_loss"] = float(ckpt.best_model_score)
         depth_scale = median_depth_scale(system, dm.plain_loader("val"))
-        model_path = export_model(
-            system, out / "model.pt", (dm.splits["train"].height, dm.splits["train"].width), depth_scale
-        )
+        size = (dm.splits["train"].height, dm.splits["train"].width)
+        model_path = save_material_model(out / "model.pt", system.hparams["model"], system.net, size, depth_scale)
         metrics["depth_scale"] = depth_scale
         write_metrics(report / "metrics.json", metrics)
         mlflow.log_metrics({k.replace("/", "."): v for k, v in metrics.items()})
