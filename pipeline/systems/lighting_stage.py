@@ -8,6 +8,7 @@ probe pixels so the gap reads off directly.
 
 from __future__ import annotations
 
+import math
 from pathlib import Path
 
 import torch
@@ -16,6 +17,7 @@ from omegaconf import DictConfig, OmegaConf
 from pipeline.data.datamodules import InteriorVerseDataModule
 from pipeline.data.datasets import read_manifest
 from pipeline.models.light_net.branches import image_scale
+from pipeline.ops.frames import orthonormal_basis, to_local
 from pipeline.systems.lighting import (
     LightingSystem,
     grid_pixels,
@@ -40,6 +42,38 @@ def mean_training_radiance(loader) -> torch.Tensor:
     if n == 0:
         raise ValueError("the training split has no lighting ground truth (run synthesize with lighting)")
     return (total / n).float()
+
+
+def hemisphere_lookup(
+    radiance: torch.Tensor, probe: torch.Tensor, normal: torch.Tensor, wi: torch.Tensor
+) -> torch.Tensor:
+    """Bilinear lookup in hemisphere probes laid out as the synthesize stage writes them
+    (`data.synth.views.hemisphere_directions`: texel centres at theta = (a + .5)/rows * pi/2 from the
+    normal, phi = (b + .5)/cols * 2 pi from the tangent of `orthonormal_basis`).
+
+    radiance (P, rows, cols, 3) probes; probe (K,) long, the probe of each query; normal (K, 3) its unit
+    normal; wi (K, 3) unit query directions. Returns (K, 3): exact at texel centres, bilinear between
+    them, periodic in phi, clamped in theta (directions below the horizon read the last row)."""
+    _, rows, cols, _ = radiance.shape
+    flat = radiance.reshape(-1, 3)
+    t, bt = orthonormal_basis(normal)
+    x, y, z = to_local(wi, t, bt, normal).unbind(-1)
+    theta = torch.atan2(torch.sqrt(x * x + y * y), z).clamp(0, math.pi / 2)
+    phi = torch.atan2(y, x) % (2 * math.pi)
+    a = (theta / (math.pi / 2) * rows - 0.5).clamp(0, rows - 1)
+    b = phi / (2 * math.pi) * cols - 0.5
+    a0, b0 = a.floor(), b.floor()
+    fa, fb = (a - a0)[:, None], (b - b0)[:, None]
+    a0 = a0.long()
+    a1 = (a0 + 1).clamp(max=rows - 1)
+    b0l = b0.long() % cols
+    b1l = (b0l + 1) % cols
+    base = probe * rows
+
+    def at(r, c):
+        return flat[(base + r) * cols + c]
+
+    return (1 - fa) * ((1 - fb) * at(a0, b0l) + fb * at(a0, b1l)) + fa * ((1 - fb) * at(a1, b0l) + fb * at(a1, b1l))
 
 
 @torch.no_grad()
@@ -67,21 +101,20 @@ def baseline_metrics(batch: dict, constant: torch.Tensor, spp: int, stride: int,
     model_gb = system.gbuffers(batch)  # what the model sees (predicted or ground truth, per config)
     rgb, target, b = shade(pix, lambda idx, o, wi, b: constant.expand(len(wi), 3), model_gb)
     out["constant/render_psnr"] = float(psnr_tonemapped(rgb, target, scale[b]))
-    # ground-truth probes: the texel of each probe's hemisphere nearest to the direction
-    probe_pix, probe_dirs, probe_rad = [], [], []
+    # ground-truth probes, interpolated bilinearly between their texel centres
+    probe_pix, probe_n, probe_rad = [], [], []
     for bi, light in enumerate(batch["light"]):
         px = torch.as_tensor(light["surf_pixel"]).long()
         probe_pix.append(bi * H * W + px[:, 0] * W + px[:, 1])
-        probe_dirs.append(torch.as_tensor(light["surf_directions"]).float().flatten(1, 2))
-        probe_rad.append(torch.as_tensor(light["surf_radiance"]).float().flatten(1, 2))
+        probe_n.append(torch.as_tensor(light["surf_normal"]).float())
+        probe_rad.append(torch.as_tensor(light["surf_radiance"]).float())
     pp = torch.cat(probe_pix)
-    dirs, rads = torch.cat(probe_dirs), torch.cat(probe_rad)
+    normals, rads = torch.cat(probe_n), torch.cat(probe_rad)
     keep = batch["mask"][:, 0].reshape(-1)[pp]
-    pp, dirs, rads = pp[keep], dirs[keep], rads[keep]
+    pp, normals, rads = pp[keep], normals[keep], rads[keep]
 
     def probe_light(idx, o, wi, b):
-        texel = torch.einsum("mtc,mc->mt", dirs[idx], wi).argmax(-1)
-        return rads[idx, texel]
+        return hemisphere_lookup(rads, idx, normals[idx], wi)
 
     rgb, target, b = shade(pp, probe_light, gt)
     out["gt_probes/render_psnr_at_probes"] = float(psnr_tonemapped(rgb, target, scale[b]))
