@@ -20,6 +20,7 @@ from tqdm import tqdm
 
 from pipeline.data import interiorverse as iv
 from pipeline.data.synth import mitsuba_backend as mb
+from pipeline.data.synth.denoise import denoise_hdr
 from pipeline.data.synth.scene import RoomConfig, generate_room, propose_camera
 from pipeline.data.synth.views import LightingConfig, Timer, camera_is_usable, gbuffer, lighting_probes
 
@@ -34,6 +35,7 @@ class SynthConfig:
     height: int = 120
     spp: int = 32
     max_depth: int = 6
+    denoise: bool = False  # Open Image Denoise on the beauty image (see data/synth/denoise.py)
     half_float: bool = False
     splits: dict = field(default_factory=lambda: {"train": 0.7, "val": 0.15, "test": 0.15})
     variant: str = "auto"
@@ -103,6 +105,9 @@ def render_scene(index: int, seed: int, cfg: SynthConfig, out: str, variant: str
             gb = gbuffer(scene, cam, cfg.width, cfg.height)
         with timer("render"):
             im = mb.render_view(scene, cam, cfg.width, cfg.height, cfg.spp, seed=s_seed * 64 + v)
+        if cfg.denoise:
+            with timer("denoise"):
+                im = denoise_hdr(im)
         with timer("lighting"):
             light = lighting_probes(scene, cam, gb, cfg.lighting, rng, seed=s_seed * 64 + v)
         with timer("write"):

@@ -76,6 +76,15 @@ def _hsv_colour(rng, hue, sat, val) -> list[float]:
     return np.clip(rgb, 0.0, 1.0).tolist()
 
 
+def _metal_colour(rng) -> list[float]:
+    """Base colour (= normal-incidence reflectance F0) of a real metal: bright, as measured F0 of common
+    metals lies between about 0.5 (iron) and 0.97 (silver); neutral (steel, aluminium, chrome) or warm
+    (gold, copper, brass). A dark or saturated green 'metal' does not exist and only blurs the cue."""
+    if rng.uniform() < 0.7:
+        return _hsv_colour(rng, (0.0, 1.0), (0.0, 0.12), (0.5, 0.97))
+    return _hsv_colour(rng, (0.03, 0.14), (0.25, 0.7), (0.6, 0.95))
+
+
 def _texture(rng, albedo2, roughness2=None, patterns=PATTERNS) -> dict:
     return {
         "pattern": str(rng.choice(patterns)),
@@ -120,9 +129,7 @@ def random_material(rng: np.random.Generator, role: str) -> Material:
                 role, base, float(rng.uniform(0.3, 0.7)), 0.0, _texture(rng, other, None, ("planks", "stripes"))
             )
         if u < 0.5:  # metal
-            return Material(
-                role, _hsv_colour(rng, (0.0, 0.15), (0.0, 0.5), (0.5, 0.95)), float(rng.uniform(0.05, 0.5)), 1.0
-            )
+            return Material(role, _metal_colour(rng), float(rng.uniform(0.05, 0.5)), 1.0)
         if u < 0.65:  # glossy plastic / lacquer
             return Material(
                 role, _hsv_colour(rng, (0.0, 1.0), (0.3, 0.9), (0.1, 0.8)), float(rng.uniform(0.05, 0.2)), 0.0
@@ -135,7 +142,9 @@ def random_material(rng: np.random.Generator, role: str) -> Material:
             )
         return Material(role, _hsv_colour(rng, (0.0, 1.0), (0.0, 0.8), (0.05, 0.9)), float(rng.uniform(0.2, 1.0)), 0.0)
     if role == "object":
-        metallic = float(rng.choice([0.0, 1.0, rng.uniform(0.0, 1.0)], p=[0.45, 0.35, 0.2]))
+        if u < 0.35:  # solid metal
+            return Material(role, _metal_colour(rng), float(np.exp(rng.uniform(np.log(0.02), np.log(0.6)))), 1.0)
         rough = float(np.exp(rng.uniform(np.log(0.02), np.log(1.0))))  # log-uniform: many glossy ones
+        metallic = float(rng.uniform(0.0, 1.0)) if u < 0.45 else 0.0  # a few painted/worn metal blends
         return Material(role, _hsv_colour(rng, (0.0, 1.0), (0.0, 0.9), (0.05, 0.95)), rough, metallic)
     raise ValueError(f"unknown material role {role!r}")
