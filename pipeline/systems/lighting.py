@@ -33,8 +33,12 @@ def relative_mse_metric(pred: torch.Tensor, target: torch.Tensor) -> torch.Tenso
     return ((pred - target) ** 2).sum() / (target**2).sum().clamp(min=1e-12)
 
 
-def log_l1(pred: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
-    return (torch.log1p(pred.clamp(min=0)) - torch.log1p(target.clamp(min=0))).abs().mean()
+def log_l1(pred: torch.Tensor, target: torch.Tensor, scale: torch.Tensor) -> torch.Tensor:
+    """mean |log(1 + L^/s) - log(1 + L/s)| over (M, 3) radiances, with s (M,) the mean of each sample's
+    image: exposure-normalised, so that it is a relative (log) error whatever the scene's brightness (on
+    absolute radiance of about 0.05, log1p is nearly linear and this would be a plain L1)."""
+    s = scale[:, None]
+    return (torch.log1p(pred.clamp(min=0) / s) - torch.log1p(target.clamp(min=0) / s)).abs().mean()
 
 
 def psnr_tonemapped(pred: torch.Tensor, target: torch.Tensor, scale: torch.Tensor) -> torch.Tensor:
@@ -236,7 +240,7 @@ class LightingSystem(L.LightningModule):
                 ]
             )
             out[f"{kind}_light_relmse"] = float(relative_mse_metric(pred, target))
-            out[f"{kind}_light_log_l1"] = float(log_l1(pred, target))
+            out[f"{kind}_light_log_l1"] = float(log_l1(pred, target, ctx["scale"][bidx]))
         pix = grid_pixels(batch["mask"][:, 0], self.eval_stride)
         rgb, target, b = self.render(ctx, gb, batch, fov, pix, self.eval_spp, gen)
         out["render_psnr"] = float(psnr_tonemapped(rgb, target, ctx["scale"][b]))

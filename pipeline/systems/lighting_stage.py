@@ -83,14 +83,14 @@ def baseline_metrics(batch: dict, constant: torch.Tensor, spp: int, stride: int,
     gen = torch.Generator().manual_seed(1234)
     fov = LightingSystem.fov(batch)
     out = {}
+    scale = image_scale(batch["im"])
     for kind in ("surf", "free"):
         r = probe_rays(batch["light"], kind, None, None, gen, "cpu")
         if r is not None:
             pred = constant.expand_as(r[2])
             out[f"constant/{kind}_light_relmse"] = float(relative_mse_metric(pred, r[2]))
-            out[f"constant/{kind}_light_log_l1"] = float(log_l1(pred, r[2]))
+            out[f"constant/{kind}_light_log_l1"] = float(log_l1(pred, r[2], scale[r[3]]))
     B, _, H, W = batch["im"].shape
-    scale = image_scale(batch["im"])
     gt = {k: batch[k] for k in ("albedo", "normal", "material")}
     gt["depth"] = torch.where(batch["mask"][:, 0], batch["depth"][:, 0], torch.zeros_like(batch["depth"][:, 0]))
 
