@@ -30,9 +30,24 @@ def normal_loss(pred, gt, mask):
     return masked_mean(1.0 - (pred * gt).sum(1, keepdim=True), mask)
 
 
-def material_loss(pred, gt, mask):
-    """L2 on roughness and metallic."""
-    return masked_mean((pred - gt) ** 2, mask)
+METALLIC_LOSSES = ("l2", "bce")
+
+
+def material_loss(pred, gt, mask, metallic: str = "l2"):
+    """Roughness and metallic, pred/gt (B, 2, H, W) in [0, 1]: L2 on both (`metallic="l2"`), or L2 on
+    roughness and binary cross-entropy on metallic (`"bce"`), averaged over the two channels.
+
+    Metallic is nearly binary and mostly 0. Through the sigmoid output, L2's gradient on a pixel predicted
+    near 0 carries a factor p(1 - p), so a confident "not metal" is almost never corrected; BCE's gradient
+    on the logit is p - y. Both are proper scores: their minimiser is the same conditional mean."""
+    if metallic not in METALLIC_LOSSES:
+        raise ValueError(f"loss.metallic={metallic!r}: choose one of {METALLIC_LOSSES}")
+    if metallic == "l2":
+        return masked_mean((pred - gt) ** 2, mask)
+    rough = masked_mean((pred[:, :1] - gt[:, :1]) ** 2, mask)
+    p, y = pred[:, 1:].clamp(1e-6, 1 - 1e-6), gt[:, 1:]
+    bce = masked_mean(-(y * torch.log(p) + (1 - y) * torch.log1p(-p)), mask)
+    return 0.5 * (rough + bce)
 
 
 def depth_loss(pred, gt, mask):
@@ -87,8 +102,12 @@ class MaterialLoss(nn.Module):
         depth: float = 1.0,
         perceptual: float = 0.0,
         perceptual_weights: str | None = None,
+        metallic: str = "l2",
     ):
         super().__init__()
+        if metallic not in METALLIC_LOSSES:
+            raise ValueError(f"loss.metallic={metallic!r}: choose one of {METALLIC_LOSSES}")
+        self.metallic = metallic
         self.weights = {"albedo": albedo, "normal": normal, "material": material, "depth": depth}
         for k, w in self.weights.items():
             if not (w >= 0):
@@ -105,7 +124,7 @@ class MaterialLoss(nn.Module):
         terms = {
             "albedo": albedo_loss(pred["albedo"], batch["albedo"], mask),
             "normal": normal_loss(pred["normal"], batch["normal"], mask),
-            "material": material_loss(pred["material"], batch["material"], mask),
+            "material": material_loss(pred["material"], batch["material"], mask, self.metallic),
             "depth": depth_loss(pred["depth"], batch["depth"], mask),
         }
         total = sum(self.weights[k] * v for k, v in terms.items())

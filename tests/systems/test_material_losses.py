@@ -88,3 +88,29 @@ def test_accuracy_gate_needs_the_margin_on_every_map():
     model = {k: 0.5 for ks in BASELINE_MAPS.values() for k in ks}
     assert accuracy_gate(model, base)["gate/passed"] == 1.0
     assert accuracy_gate({**model, "metallic_mse": 0.85}, base)["gate/passed"] == 0.0
+
+
+def test_metallic_bce_is_the_binary_cross_entropy_and_corrects_confident_misses():
+    from pipeline.systems.losses import material_loss
+
+    b = _batch()
+    p = torch.full_like(b["material"], 0.02, requires_grad=True)
+    gt = b["material"].clone()
+    gt[:, 1] = (gt[:, 1] > 0.5).float()
+    m = b["mask"]
+    bce = material_loss(p, gt, m, "bce")
+    rough = ((p[:, :1] - gt[:, :1]) ** 2)[m].mean()
+    ref = torch.nn.functional.binary_cross_entropy(p[:, 1:][m], gt[:, 1:][m])
+    assert torch.allclose(bce, 0.5 * (rough + ref), rtol=1e-5)
+    # a confident miss (p = sigmoid(-4), y = 1): on the logit BCE pulls with (p - y) / 2 per pixel (the
+    # 1/2 averages it with roughness), L2 over both channels with 2 (p - y) p (1 - p) / 2: 28x weaker
+    logit = torch.full_like(p, -4.0, requires_grad=True)
+    q = torch.sigmoid(torch.tensor(-4.0))
+    target = torch.cat([torch.sigmoid(logit[:, :1]).detach(), torch.ones_like(p[:, 1:])], 1)
+    for kind, expect in (("bce", (q - 1) / 2), ("l2", (q - 1) * q * (1 - q))):
+        logit.grad = None
+        material_loss(torch.sigmoid(logit), target, m, kind).backward()
+        g = logit.grad[:, 1:][m] * m.sum()
+        assert torch.allclose(g, torch.full_like(g, float(expect)), rtol=1e-4)
+    with pytest.raises(ValueError, match="loss.metallic"):
+        MaterialLoss(metallic="focal")
