@@ -23,12 +23,17 @@ class InteriorVerseDataModule(L.LightningDataModule):
         seed: int = 0,
         lighting: bool = True,
         augment: bool = False,
+        permute: bool = True,
+        min_scale: float = 1.0,
     ):
         super().__init__()
         if batch_size < 1:
             raise ValueError(f"batch_size={batch_size}: must be >= 1")
         self.root, self.batch_size, self.num_workers = Path(root), int(batch_size), int(num_workers)
         self.seed, self.lighting, self.augment = int(seed), lighting, augment
+        self.permute, self.min_scale = bool(permute), float(min_scale)
+        if not 0.0 < self.min_scale <= 1.0:
+            raise ValueError(f"min_scale={min_scale}: must be in (0, 1] (1 = no crop augmentation)")
         self.splits: dict[str, ShardDataset] = {}
 
     def setup(self, stage: str | None = None) -> None:
@@ -48,7 +53,7 @@ class InteriorVerseDataModule(L.LightningDataModule):
             aug_gen = torch.Generator().manual_seed(self.seed + 1)
 
             def collate(items):
-                return augment_views(collate_views(items), aug_gen)
+                return augment_views(collate_views(items), aug_gen, self.permute, self.min_scale)
 
         return DataLoader(
             self.splits[split],

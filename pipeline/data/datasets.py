@@ -8,6 +8,7 @@ from pathlib import Path
 
 import numpy as np
 import torch
+from torch.nn import functional as F
 from torch.utils.data import Dataset
 
 from pipeline.data import interiorverse as iv
@@ -95,17 +96,23 @@ def collate_views(items: list[dict]) -> dict:
     return batch
 
 
-def augment_views(batch: dict, generator: torch.Generator) -> dict:
-    """Per view of a collated batch, exact augmentations of the rendering: a left-right mirror with
-    probability 1/2 (the normal's view-space x changes sign) and a random permutation of the RGB
-    channels of image and albedo together (RGB rendering is per channel, so the permuted image is the
-    same scene under permuted albedo and light colours). Batches with lighting probes, which would need
-    the same transforms, are returned unchanged."""
+def augment_views(batch: dict, generator: torch.Generator, permute: bool = True, min_scale: float = 1.0) -> dict:
+    """Per view of a collated batch, augmentations that stay true to the rendering:
+    - a left-right mirror with probability 1/2 (the normal's view-space x changes sign);
+    - with `permute`, a random permutation of the RGB channels of image and albedo together (RGB rendering
+      is per channel, so the permuted image is the same scene under permuted albedo and light colours);
+    - with `min_scale` < 1, a random crop of a fraction s ~ U(min_scale, 1) of each side, resized back to
+      (H, W): a longer focal length of the same camera, so view-space normals and z-depth keep their
+      values; the image is resampled bilinearly, the ground-truth maps by nearest texel (no mixed labels),
+      and fov_x_deg becomes 2 atan(s tan(fov / 2)).
+    Batches with lighting probes, which would need the same transforms, are returned unchanged."""
     if "light" in batch:
         return batch
-    B = batch["im"].shape[0]
+    if not 0.0 < min_scale <= 1.0:
+        raise ValueError(f"augment min_scale={min_scale}: must be in (0, 1]")
+    B, _, H, W = batch["im"].shape
     flip = torch.rand(B, generator=generator) < 0.5
-    perms = [torch.randperm(3, generator=generator) for _ in range(B)]
+    perms = [torch.randperm(3, generator=generator) if permute else torch.arange(3) for _ in range(B)]
     out = {k: (v.clone() if k in MAP_KEYS else v) for k, v in batch.items()}
     for k in MAP_KEYS:
         out[k][flip] = out[k][flip].flip(-1)
@@ -113,4 +120,20 @@ def augment_views(batch: dict, generator: torch.Generator) -> dict:
     for i, perm in enumerate(perms):
         out["im"][i] = out["im"][i, perm]
         out["albedo"][i] = out["albedo"][i, perm]
+    if min_scale < 1.0:
+        out["fov_x_deg"] = out["fov_x_deg"].clone()
+        scales = min_scale + (1.0 - min_scale) * torch.rand(B, generator=generator)
+        for i in range(B):
+            h, w = max(1, round(H * float(scales[i]))), max(1, round(W * float(scales[i])))
+            top = int(torch.randint(0, H - h + 1, (1,), generator=generator))
+            left = int(torch.randint(0, W - w + 1, (1,), generator=generator))
+            for k in MAP_KEYS:
+                crop = out[k][i : i + 1, :, top : top + h, left : left + w]
+                if k == "im":
+                    crop = F.interpolate(crop, size=(H, W), mode="bilinear", align_corners=False)
+                else:
+                    crop = F.interpolate(crop.float(), size=(H, W), mode="nearest-exact").to(out[k].dtype)
+                out[k][i] = crop[0]
+            half = torch.deg2rad(out["fov_x_deg"][i].double()) / 2
+            out["fov_x_deg"][i] = torch.rad2deg(2 * torch.atan(torch.tan(half) * w / W)).to(out["fov_x_deg"].dtype)
     return out
