@@ -22,6 +22,7 @@ from pipeline.systems.lighting import (
     LightingSystem,
     grid_pixels,
     log_l1,
+    normalised_mse,
     probe_rays,
     psnr_tonemapped,
     relative_mse_metric,
@@ -88,7 +89,8 @@ def baseline_metrics(batch: dict, constant: torch.Tensor, spp: int, stride: int,
         r = probe_rays(batch["light"], kind, None, None, gen, "cpu")
         if r is not None:
             pred = constant.expand_as(r[2])
-            out[f"constant/{kind}_light_relmse"] = float(relative_mse_metric(pred, r[2]))
+            out[f"constant/{kind}_light_relmse"] = float(relative_mse_metric(pred, r[2], scale[r[3]]))
+            out[f"constant/{kind}_light_nmse"] = float(normalised_mse(pred, r[2]))
             out[f"constant/{kind}_light_log_l1"] = float(log_l1(pred, r[2], scale[r[3]]))
     B, _, H, W = batch["im"].shape
     gt = {k: batch[k] for k in ("albedo", "normal", "material")}

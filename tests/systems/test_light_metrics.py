@@ -1,0 +1,38 @@
+"""Lighting metrics: relMSE, normalised MSE and log-L1 on hand-computed cases; exposure invariance."""
+
+import math
+
+import torch
+
+from pipeline.systems.lighting import log_l1, normalised_mse, psnr_tonemapped, relative_mse_metric
+
+
+def test_relmse_by_hand_and_exposure_invariant():
+    target = torch.tensor([[1.0, 1.0, 1.0], [0.0, 0.0, 0.0]])
+    pred = torch.tensor([[2.0, 2.0, 2.0], [0.1, 0.1, 0.1]])
+    scale = torch.tensor([1.0, 1.0])
+    # texel 1: (2 - 1)^2 / (1 + 0.01); texel 2: 0.1^2 / 0.01 = 1
+    expect = (1 / 1.01 + 1.0) / 2
+    assert math.isclose(float(relative_mse_metric(pred, target, scale)), expect, rel_tol=1e-6)
+    for k in (1e-3, 37.0):  # the same scene at another exposure scores the same
+        assert math.isclose(float(relative_mse_metric(pred * k, target * k, scale * k)), expect, rel_tol=1e-5)
+    assert float(relative_mse_metric(target, target, scale)) == 0.0
+
+
+def test_nmse_is_error_energy_over_light_energy():
+    target = torch.tensor([[3.0, 0.0, 4.0]])
+    assert math.isclose(float(normalised_mse(torch.zeros_like(target), target)), 1.0)
+    assert math.isclose(float(normalised_mse(target * 0.5, target)), 0.25, rel_tol=1e-6)
+
+
+def test_log_l1_and_psnr_are_exposure_invariant():
+    g = torch.Generator().manual_seed(0)
+    target = torch.rand(50, 3, generator=g) * 4
+    pred = target * (0.5 + torch.rand(50, 3, generator=g))
+    scale = torch.full((50,), 0.7)
+    for k in (0.01, 100.0):
+        assert math.isclose(
+            float(log_l1(pred * k, target * k, scale * k)), float(log_l1(pred, target, scale)), rel_tol=1e-5
+        )
+        a, b = float(psnr_tonemapped(pred * k, target * k, scale * k)), float(psnr_tonemapped(pred, target, scale))
+        assert math.isclose(a, b, rel_tol=1e-5)
