@@ -134,3 +134,33 @@ def test_hard_rays_stay_finite():
     assert torch.isfinite(out["radiance"]).all()
     out["radiance"].sum().backward()
     assert all(torch.isfinite(p.grad).all() for p in net.parameters() if p.grad is not None)
+
+
+def test_pixel_base_returns_the_hit_pixels_radiance_when_the_correction_is_zero():
+    """With g = 0 and a -> -inf the local branch is the image's own HDR value at the SSRT hit."""
+    torch.manual_seed(0)
+    im, gbuffer, fov, origin, wi, bidx = _scene()
+    net = LightNet(mode="ssrt_only", local={"pixel_base": True})
+    with torch.no_grad():
+        net.local.mlp[-1].weight.zero_()
+        net.local.mlp[-1].bias[:3].zero_()
+        net.local.mlp[-1].bias[3:].fill_(-60.0)
+        out = net(net.encode(im, gbuffer["depth"], fov), gbuffer, fov, origin, wi, bidx)
+    from pipeline.models.light_net import trace_views
+
+    pixel, hit, _ = trace_views(gbuffer, fov, origin, wi, bidx)
+    assert hit.sum() > 10
+    expect = im[bidx[hit], :, pixel[hit, 0], pixel[hit, 1]]
+    assert torch.allclose(out["radiance"][hit], expect, rtol=1e-5, atol=1e-6)
+    assert (out["radiance"][~hit] == 0).all()  # ssrt_only: misses get no light
+
+
+def test_pixel_base_gradients_reach_the_encoder_and_mlp():
+    torch.manual_seed(0)
+    im, gbuffer, fov, origin, wi, bidx = _scene()
+    net = LightNet(mode="mixed", local={"pixel_base": True}, out_of_view={"samples": 4})
+    out = net(net.encode(im, gbuffer["depth"], fov), gbuffer, fov, origin, wi, bidx)
+    assert torch.isfinite(out["radiance"]).all() and (out["radiance"] >= 0).all()
+    out["radiance"].sum().backward()
+    assert net.local.mlp[-1].weight.grad.abs().sum() > 0
+    assert net.local.encoder.stages[0][0][0].weight.grad.abs().sum() > 0

@@ -57,6 +57,7 @@ class LightNet(nn.Module):
         ctx = {"scale": image_scale(im), "bounds": scene_bounds(depth, fov_x), "size": im.shape[-2:]}
         if self.local is not None:
             ctx["local"] = self.local.encode(im)
+            ctx["image"] = im.clamp(min=0) / ctx["scale"].view(-1, 1, 1, 1)
         if self.out_of_view is not None:
             ctx["feature"], ctx["params"] = self.out_of_view.encode(im)
         return ctx
@@ -74,7 +75,9 @@ class LightNet(nn.Module):
             h = torch.nonzero(hit).squeeze(-1)
             b, px = batch_index[h], pixel[h]
             gb = _gbuffer_at(gbuffer, b, px)
-            l_ssrt = l_ssrt.index_put((h,), self.local.query(ctx["local"], ctx["scale"], b, px, ctx["size"], wi[h], gb))
+            l_ssrt = l_ssrt.index_put(
+                (h,), self.local.query(ctx["local"], ctx["scale"], b, px, ctx["size"], wi[h], gb, ctx["image"])
+            )
         if self.mode == "ssrt_only":
             return {"radiance": l_ssrt, "u": u, "hit": hit, "out_queries": 0}
         need = torch.ones_like(hit) if self.mode == "out_of_view_only" else u >= self.out_threshold

@@ -47,21 +47,40 @@ def _mlp(cin: int, hidden: int, layers: int, cout: int) -> nn.Sequential:
 
 
 class LocalBranch(nn.Module):
+    """pixel_base: also read the image's own radiance at the hit pixel (in units of the image mean) and
+    predict L = pixel * exp(g) + softplus(a) from the MLP's (g, a), instead of softplus(MLP). The camera
+    saw that pixel's radiance leaving the hit towards it; for a diffuse hit it is exactly the radiance
+    leaving towards any query point, so the network only learns the view-dependent correction, and a
+    visible lamp or window keeps its full HDR value instead of being decoded from compressed features."""
+
     def __init__(
-        self, backbone: str = "small", levels: int = 3, frequencies: int = 4, hidden: int = 128, layers: int = 3
+        self,
+        backbone: str = "small",
+        levels: int = 3,
+        frequencies: int = 4,
+        hidden: int = 128,
+        layers: int = 3,
+        pixel_base: bool = False,
     ):
         super().__init__()
         self.encoder = _encoder(backbone)
-        self.levels, self.frequencies = int(levels), int(frequencies)
+        self.levels, self.frequencies, self.pixel_base = int(levels), int(frequencies), bool(pixel_base)
         feat_dim = sum(self.encoder.channels[: self.levels])
-        self.mlp = _mlp(fourier_dim(3, frequencies) + feat_dim + GBUFFER_DIM, hidden, layers, 3)
+        extra = 3 if self.pixel_base else 0
+        self.mlp = _mlp(fourier_dim(3, frequencies) + feat_dim + GBUFFER_DIM + extra, hidden, layers, 6 if extra else 3)
+        if self.pixel_base:
+            with torch.no_grad():  # start near L = pixel: unit gain, a small additive term
+                self.mlp[-1].weight[:3].mul_(0.1)
+                self.mlp[-1].bias[:3].zero_()
+                self.mlp[-1].bias[3:].fill_(-4.0)
 
     def encode(self, im: torch.Tensor) -> list[torch.Tensor]:
         return self.encoder(normalize_input(im))[: self.levels]
 
-    def query(self, feats, scale, batch_index, pixel, size, wi, gbuf):
+    def query(self, feats, scale, batch_index, pixel, size, wi, gbuf, image=None):
         """feats: encode() output; scale (B,); batch_index (N,); pixel (N, 2) (row, col) hit pixels;
-        size (H, W); wi (N, 3); gbuf (N, 10) at the hit -> radiance (N, 3)."""
+        size (H, W); wi (N, 3); gbuf (N, 10) at the hit; image (B, 3, H, W) the input divided by scale
+        (needed with pixel_base) -> radiance (N, 3)."""
         H, W = size
         # pixel centres in grid_sample's [-1, 1] coordinates (align_corners=False)
         gx = (pixel[:, 1].to(wi.dtype) + 0.5) / W * 2 - 1
@@ -76,7 +95,14 @@ class LocalBranch(nn.Module):
                 out[sel] = F.grid_sample(f[b : b + 1], g, mode="bilinear", align_corners=False)[0, :, :, 0].T
             sampled.append(out)
         x = torch.cat([fourier(wi, self.frequencies), *sampled, gbuf], -1)
-        return F.softplus(self.mlp(x)) * scale[batch_index].unsqueeze(-1)
+        if not self.pixel_base:
+            return F.softplus(self.mlp(x)) * scale[batch_index].unsqueeze(-1)
+        if image is None:
+            raise ValueError("LocalBranch(pixel_base=True).query needs the normalised image")
+        pix = image[batch_index, :, pixel[:, 0], pixel[:, 1]].clamp(min=0)
+        out = self.mlp(torch.cat([x, torch.log1p(pix)], -1))
+        radiance = pix * torch.exp(out[:, :3].clamp(-10.0, 5.0)) + F.softplus(out[:, 3:])
+        return radiance * scale[batch_index].unsqueeze(-1)
 
 
 class OutOfViewBranch(nn.Module):
