@@ -22,8 +22,13 @@ from pipeline.ops.mc import estimate
 PROBE_EPS = 1e-3  # m: probe origins sit this far above their surface, as do re-render ray origins
 
 
-def relative_mse(pred: torch.Tensor, target: torch.Tensor, eps: float = 1e-3) -> torch.Tensor:
-    """mean(((L^ - L) / (sg(L^) + eps))^2): RawNeRF's HDR loss (no clipping)."""
+def relative_mse(pred: torch.Tensor, target: torch.Tensor, eps: float = 1e-3, scale: torch.Tensor | None = None):
+    """mean(((L^ - L) / (sg(L^) + eps))^2): RawNeRF's HDR loss (no clipping). With `scale` (M,), the mean
+    of each sample's image, radiance is first divided by it: the networks predict in those units, and an
+    absolute eps would weigh a dim room's texels (where eps is a large share of the light) unlike a
+    bright room's."""
+    if scale is not None:
+        pred, target = pred / scale[:, None], target / scale[:, None]
     return (((pred - target) / (pred.detach() + eps)) ** 2).mean()
 
 
@@ -219,7 +224,7 @@ class LightingSystem(L.LightningModule):
         if rays:
             o, d, target, bidx, _ = (torch.cat(x) for x in zip(*rays, strict=True))
             pred = self.net(ctx, gb, fov, o, d, bidx, self.generator)["radiance"]
-            losses["light"] = relative_mse(pred, target)
+            losses["light"] = relative_mse(pred, target, scale=scale[bidx])
         pix = self.sample_pixels(batch["mask"][:, 0], self.pixels)
         rgb, target, b = self.render(ctx, gb, batch, fov, pix, self.spp, self.generator)
         losses["render"] = (((rgb - target) / scale[b, None]) ** 2).mean()

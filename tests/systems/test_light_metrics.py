@@ -36,3 +36,18 @@ def test_log_l1_and_psnr_are_exposure_invariant():
         )
         a, b = float(psnr_tonemapped(pred * k, target * k, scale * k)), float(psnr_tonemapped(pred, target, scale))
         assert math.isclose(a, b, rel_tol=1e-5)
+
+
+def test_relative_mse_loss_is_exposure_invariant_and_stationary_at_the_mean():
+    from pipeline.systems.lighting import relative_mse
+
+    g = torch.Generator().manual_seed(0)
+    target = torch.rand(64, 3, generator=g, dtype=torch.float64) ** 4 * 10
+    pred = torch.rand(64, 3, generator=g, dtype=torch.float64)
+    scale = torch.full((64,), 0.3, dtype=torch.float64)
+    a = relative_mse(pred, target, scale=scale)
+    assert torch.allclose(relative_mse(pred * 7, target * 7, scale=scale * 7), a)
+    # stop-gradient denominator: one shared prediction settles at the targets' mean, not a smaller value
+    c = torch.full((64, 3), float(target.mean()), dtype=torch.float64, requires_grad=True)
+    relative_mse(c, target.expand(64, 3).contiguous(), scale=scale).backward()
+    assert abs(float(c.grad.sum())) < 1e-9
