@@ -113,3 +113,43 @@ def test_textures_are_deterministic_discrete_and_in_range():
     assert len(np.unique(pattern_levels(spec))) <= 5
     with pytest.raises(ValueError, match="pattern"):
         pattern_levels({**spec, "pattern": "zebra"})
+
+
+def test_pictures_hang_flat_on_walls_without_overlapping(rooms):
+    pictures = 0
+    for room in rooms:
+        hung = [s for s in room.shapes if s.role in ("picture", "mirror")]
+        pictures += sum(s.role == "picture" for s in hung)
+        for s in hung:
+            m = room.materials[s.material]
+            assert m.metallic == (1.0 if s.role == "mirror" else 0.0)
+            centre = np.asarray(s.to_world)[:3, 3]
+            W, H, D = room.size
+            # within a few millimetres of a wall plane, at eye height
+            assert min(abs(abs(centre[0]) - W / 2), abs(abs(centre[2]) - D / 2)) < 0.005
+            assert 1.0 < centre[1] < 2.0
+        # spans on the same wall do not overlap (compare the centres' separation with the half extents)
+        for i, a in enumerate(hung):
+            for b in hung[i + 1 :]:
+                ta, tb = np.asarray(a.to_world), np.asarray(b.to_world)
+                if not np.allclose(ta[:3, 2], tb[:3, 2]):  # different walls
+                    continue
+                along = ta[:3, 0] / np.linalg.norm(ta[:3, 0])
+                gap = abs(float(np.dot(ta[:3, 3] - tb[:3, 3], along)))
+                assert gap >= np.linalg.norm(ta[:3, 0]) + np.linalg.norm(tb[:3, 0]) + 0.05
+    assert pictures > len(rooms) // 2
+
+
+def test_furniture_materials_follow_their_kind():
+    from pipeline.data.synth.materials import FURNITURE_MIX, random_material
+    from pipeline.data.synth.scene import FURNITURE_KINDS
+
+    assert set(FURNITURE_MIX) == set(FURNITURE_KINDS)
+    rng = np.random.default_rng(0)
+    for kind, mix in FURNITURE_MIX.items():
+        assert abs(sum(p for _, p in mix) - 1) < 1e-9
+        metal = np.mean([random_material(rng, "furniture", kind).metallic == 1.0 for _ in range(400)])
+        expect = dict(mix).get("metal", 0.0)
+        assert abs(metal - expect) <= 4 * np.sqrt(max(expect * (1 - expect), 1e-4) / 400), kind
+    with pytest.raises(ValueError, match="furniture kind"):
+        random_material(rng, "furniture", "piano")

@@ -95,8 +95,52 @@ def _texture(rng, albedo2, roughness2=None, patterns=PATTERNS) -> dict:
     }
 
 
-def random_material(rng: np.random.Generator, role: str) -> Material:
-    """Draw a material for a surface role: floor, wall, ceiling, furniture, object, mirror, lamp.
+# Which materials each kind of furniture is made of, as (material, probability) in the order drawn. Real
+# cabinets, tables and shelves come in steel; sofas and beds are upholstered. A metal sofa or bed does
+# not exist, and a 2 m metal slab is most of a view's metal; keeping it out is a semantic cue real photos
+# carry too.
+FURNITURE_MIX = {
+    "cabinet": (("wood", 0.35), ("metal", 0.3), ("lacquer", 0.15), ("painted", 0.2)),
+    "table": (("wood", 0.4), ("metal", 0.3), ("lacquer", 0.15), ("painted", 0.15)),
+    "shelf": (("wood", 0.45), ("metal", 0.35), ("painted", 0.2)),
+    "sofa": (("fabric", 0.6), ("leather", 0.25), ("painted", 0.15)),
+    "bed": (("fabric", 0.8), ("painted", 0.2)),
+    "block": (("wood", 0.25), ("metal", 0.2), ("lacquer", 0.15), ("fabric", 0.2), ("painted", 0.2)),
+}
+
+
+def _furniture_material(rng, kind: str | None, u: float) -> Material:
+    """One piece of furniture's material; `u` ~ U(0, 1) picks the kind of material from FURNITURE_MIX."""
+    mix = FURNITURE_MIX.get(kind or "block")
+    if mix is None:
+        raise ValueError(f"unknown furniture kind {kind!r} (choose from {sorted(FURNITURE_MIX)})")
+    names, probs = zip(*mix, strict=True)
+    which = names[min(int(np.searchsorted(np.cumsum(probs), u, side="right")), len(names) - 1)]
+    role = "furniture"
+    if which == "wood":
+        base = _hsv_colour(rng, (0.05, 0.1), (0.4, 0.8), (0.1, 0.5))
+        other = _hsv_colour(rng, (0.04, 0.1), (0.4, 0.8), (0.05, 0.35))
+        return Material(
+            role, base, float(rng.uniform(0.3, 0.7)), 0.0, _texture(rng, other, None, ("planks", "stripes"))
+        )
+    if which == "metal":
+        return Material(role, _metal_colour(rng), float(rng.uniform(0.05, 0.5)), 1.0)
+    if which == "lacquer":  # glossy plastic / lacquer
+        return Material(role, _hsv_colour(rng, (0.0, 1.0), (0.3, 0.9), (0.1, 0.8)), float(rng.uniform(0.05, 0.2)), 0.0)
+    if which == "fabric":  # patterned upholstery
+        base = _hsv_colour(rng, (0.0, 1.0), (0.2, 0.8), (0.1, 0.7))
+        other = _hsv_colour(rng, (0.0, 1.0), (0.2, 0.8), (0.1, 0.7))
+        return Material(
+            role, base, float(rng.uniform(0.85, 1.0)), 0.0, _texture(rng, other, None, ("checker", "blotches"))
+        )
+    if which == "leather":
+        return Material(role, _hsv_colour(rng, (0.0, 0.12), (0.3, 0.8), (0.03, 0.4)), float(rng.uniform(0.3, 0.6)), 0.0)
+    return Material(role, _hsv_colour(rng, (0.0, 1.0), (0.0, 0.8), (0.05, 0.9)), float(rng.uniform(0.2, 1.0)), 0.0)
+
+
+def random_material(rng: np.random.Generator, role: str, kind: str | None = None) -> Material:
+    """Draw a material for a surface role: floor, wall, ceiling, furniture, object, mirror, picture, lamp.
+    `kind` is the furniture kind (see scene.FURNITURE_KINDS), which decides which materials it can be made of.
 
     The mix covers mirror-like to matte roughness, metallic 0, 1 and in between, and textured albedo.
     """
@@ -119,28 +163,20 @@ def random_material(rng: np.random.Generator, role: str) -> Material:
         return Material(role, [float(rng.uniform(0.7, 0.9))] * 3, float(rng.uniform(0.7, 1.0)), 0.0)
     if role == "mirror":
         return Material(role, [float(rng.uniform(0.88, 0.96))] * 3, 0.02, 1.0)
+    if role == "picture":  # poster / painting: a high-contrast pattern of two unrelated colours
+        base = _hsv_colour(rng, (0.0, 1.0), (0.2, 0.9), (0.3, 0.9))
+        other = _hsv_colour(rng, (0.0, 1.0), (0.3, 1.0), (0.02, 0.4))
+        return Material(
+            role,
+            base,
+            float(rng.uniform(0.3, 0.9)),
+            0.0,
+            _texture(rng, other, None, ("checker", "stripes", "blotches")),
+        )
     if role == "lamp":
         return Material(role, [0.9, 0.9, 0.9], 0.5, 0.0)
     if role == "furniture":
-        if u < 0.3:  # wood
-            base = _hsv_colour(rng, (0.05, 0.1), (0.4, 0.8), (0.1, 0.5))
-            other = _hsv_colour(rng, (0.04, 0.1), (0.4, 0.8), (0.05, 0.35))
-            return Material(
-                role, base, float(rng.uniform(0.3, 0.7)), 0.0, _texture(rng, other, None, ("planks", "stripes"))
-            )
-        if u < 0.5:  # metal
-            return Material(role, _metal_colour(rng), float(rng.uniform(0.05, 0.5)), 1.0)
-        if u < 0.65:  # glossy plastic / lacquer
-            return Material(
-                role, _hsv_colour(rng, (0.0, 1.0), (0.3, 0.9), (0.1, 0.8)), float(rng.uniform(0.05, 0.2)), 0.0
-            )
-        if u < 0.8:  # fabric, patterned
-            base = _hsv_colour(rng, (0.0, 1.0), (0.2, 0.8), (0.1, 0.7))
-            other = _hsv_colour(rng, (0.0, 1.0), (0.2, 0.8), (0.1, 0.7))
-            return Material(
-                role, base, float(rng.uniform(0.85, 1.0)), 0.0, _texture(rng, other, None, ("checker", "blotches"))
-            )
-        return Material(role, _hsv_colour(rng, (0.0, 1.0), (0.0, 0.8), (0.05, 0.9)), float(rng.uniform(0.2, 1.0)), 0.0)
+        return _furniture_material(rng, kind, u)
     if role == "object":
         if u < 0.35:  # solid metal
             return Material(role, _metal_colour(rng), float(np.exp(rng.uniform(np.log(0.02), np.log(0.6)))), 1.0)

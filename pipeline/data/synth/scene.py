@@ -28,7 +28,7 @@ class Shape:
     kind: str
     to_world: list[list[float]]
     material: int
-    role: str  # wall | floor | ceiling | furniture | object | mirror | lamp
+    role: str  # wall | floor | ceiling | furniture | object | mirror | picture | lamp
     emission: list[float] | None = None  # RGB radiance (W/m^2/sr) for lamps
 
 
@@ -210,6 +210,7 @@ class RoomConfig:
     lamps: tuple[int, int] = (1, 3)
     window_probability: float = 0.75
     mirror_probability: float = 0.4
+    pictures: tuple[int, int] = (0, 2)  # framed patterns per wall without a window
     fov_x_deg: tuple[float, float] = (60.0, 85.0)
     camera_height: tuple[float, float] = (1.1, 1.7)
     camera_pitch_deg: tuple[float, float] = (-25.0, 5.0)
@@ -227,8 +228,8 @@ def generate_room(seed: int, views: int, cfg: RoomConfig | None = None):
     W, H, D = (float(rng.uniform(*r)) for r in (cfg.width, cfg.height, cfg.depth))
     room = Room(seed=seed, size=[W, H, D], materials=[], shapes=[], windows=[], sky=None)
 
-    def add_material(role: str) -> int:
-        room.materials.append(random_material(rng, role))
+    def add_material(role: str, kind: str | None = None) -> int:
+        room.materials.append(random_material(rng, role, kind))
         return len(room.materials) - 1
 
     _add_shell(room, rng, cfg, add_material)
@@ -268,15 +269,39 @@ def _add_shell(room: Room, rng, cfg: RoomConfig, add_material) -> None:
             room.shapes.append(Shape("rectangle", frame_matrix(c, along * half_len, up * H / 2, n), wall_m, "wall"))
         else:
             _add_wall_with_window(room, rng, c, along, half_len, n, wall_m)
+        taken: list[tuple[float, float]] = []  # occupied spans along the wall (mirror, pictures)
         if k == mirror_wall and k not in window_walls:
             mw, mh = float(rng.uniform(0.4, min(1.0, half_len * 0.6))), float(rng.uniform(0.5, 0.9))
-            centre = c + n * 0.002 + up * (float(rng.uniform(1.2, 1.6)) - H / 2)
-            centre = centre + along * float(rng.uniform(-(half_len - mw - 0.2), half_len - mw - 0.2))
+            off = float(rng.uniform(-(half_len - mw - 0.2), half_len - mw - 0.2))
+            centre = c + n * 0.002 + up * (float(rng.uniform(1.2, 1.6)) - H / 2) + along * off
             room.shapes.append(
                 Shape("rectangle", frame_matrix(centre, along * mw, up * mh, n), add_material("mirror"), "mirror")
             )
+            taken.append((off - mw, off + mw))
+        if k not in window_walls:
+            _add_pictures(room, rng, cfg, c, along, half_len, n, taken, add_material)
     if window_walls:
         room.sky = _random_sky(rng)
+
+
+def _add_pictures(room: Room, rng, cfg: RoomConfig, c, along, half_len, n, taken, add_material) -> None:
+    """Up to `cfg.pictures` framed patterns (posters, paintings) hung on a wall at eye height, clear of
+    the spans in `taken`. Real rooms are full of such structure, and it is what glossy and metal
+    surfaces visibly reflect: in a room of plain walls a polished metal box looks like a grey one."""
+    H = room.size[1]
+    up = np.array([0, 1.0, 0])
+    for _ in range(int(rng.integers(cfg.pictures[0], cfg.pictures[1] + 1))):
+        pw, ph = float(rng.uniform(0.25, 0.7)), float(rng.uniform(0.2, 0.5))
+        if half_len - pw - 0.15 <= 0:
+            continue
+        off = float(rng.uniform(-(half_len - pw - 0.15), half_len - pw - 0.15))
+        if any(off - pw < b + 0.1 and off + pw > a - 0.1 for a, b in taken):
+            continue  # would overlap the mirror or another picture: leave this one out
+        taken.append((off - pw, off + pw))
+        centre = c + n * 0.003 + up * (float(rng.uniform(1.3, 1.8)) - H / 2) + along * off
+        room.shapes.append(
+            Shape("rectangle", frame_matrix(centre, along * pw, up * ph, n), add_material("picture"), "picture")
+        )
 
 
 def _add_wall_with_window(room: Room, rng, c, along, half_len, n, wall_m) -> None:
@@ -335,7 +360,7 @@ def _add_furniture(room: Room, rng, cfg: RoomConfig, add_material) -> list[Footp
         else:
             continue  # no free spot for this piece: the room is full enough
         footprints.append(fp)
-        mat = add_material("furniture")
+        mat = add_material("furniture", kind)
         parts, top = furniture_parts(kind, w, d, h)
         xz = fp.centre
         for centre, half in parts:
