@@ -70,8 +70,8 @@ def build_datamodule(cfg: DictConfig) -> InteriorVerseDataModule:
         seed=int(cfg.seed),
         lighting=False,
         augment=bool(cfg.augment),
-        permute=bool(cfg.get("augment_permute", True)),
-        min_scale=float(cfg.get("augment_min_scale", 1.0)),
+        permute=bool(cfg.augment_permute),
+        min_scale=float(cfg.augment_min_scale),
     )
 
 
