@@ -169,12 +169,21 @@ def run_train_lighting(cfg: DictConfig) -> dict[str, float]:
         # the first validation pass (before any training step) records the starting re-render PSNR
         start = trainer.validate(system, datamodule=dm, verbose=False)[0]
         trainer.fit(system, datamodule=dm)
-        # validation may not fall on the last epoch (check_val_every_n_epoch): measure the end state
-        after = float(trainer.validate(system, datamodule=dm, verbose=False)[0]["val/render_psnr"])
+        last = float(trainer.validate(system, datamodule=dm, verbose=False)[0]["val/render_psnr"])
+        # model selection on validation: the light loss's rare huge terms make late steps jumpy, so the
+        # test split, the baselines' model row and model.pt use the best validated weights
+        chosen = "last"
+        if ckpt.best_model_path and ckpt.best_model_score is not None and float(ckpt.best_model_score) > last:
+            best = torch.load(ckpt.best_model_path, map_location="cpu", weights_only=True)
+            system.load_state_dict(best["state_dict"])
+            chosen = f"best (epoch {best['epoch']})"
+        after = max(last, float(ckpt.best_model_score)) if ckpt.best_model_score is not None else last
+        mlflow.set_tag("test_weights", chosen)
         trainer.test(system, datamodule=dm, verbose=False)
         metrics = {f"{mode}/{k}": float(v) for k, v in trainer.callback_metrics.items() if k.startswith("test/")}
         metrics[f"{mode}/val/render_psnr_before_training"] = float(start["val/render_psnr"])
         metrics[f"{mode}/val/render_psnr_after_training"] = after
+        metrics[f"{mode}/val/render_psnr_last_epoch"] = last
         system.eval()
         rows = [
             baseline_metrics(b, constant, int(lt.eval_spp), int(lt.eval_stride), system)

@@ -78,3 +78,7 @@ def test_stage_reports_mode_metrics_and_baselines(micro_shards, tmp_path):
         assert np.isfinite(metrics[key]), key
     assert (tmp_path / "outputs" / "train_lighting" / "model.pt").is_file()
     assert (tmp_path / "reports" / "train_lighting" / "metrics.json").is_file()
+    # the test split is scored with the best validated weights: never worse on val than the last epoch
+    assert metrics["mixed/val/render_psnr_after_training"] >= metrics["mixed/val/render_psnr_last_epoch"]
+    best = torch.load(tmp_path / "outputs" / "train_lighting" / "checkpoints" / "best.ckpt", weights_only=True)
+    assert any(k.startswith("net.") for k in best["state_dict"])
