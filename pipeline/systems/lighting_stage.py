@@ -1,7 +1,9 @@
 """Stage `train_lighting`: LightNet training, test metrics per mode, and the two baselines.
 
-Baselines on the same test views: a constant light (the mean incident radiance of the training probes)
-and the ground-truth G-buffers re-rendered under the ground-truth probe light at the surface-probe pixels
+Baselines on the same test views: a constant light (the mean incident radiance of the training probes),
+the same at each photo's exposure (the training probes' mean in units of their image's mean, times the
+test image's mean: what a network that ignores the image's content can still get right), and the
+ground-truth G-buffers re-rendered under the ground-truth probe light at the surface-probe pixels
 (the best any light model can do with this render layer at this spp). The model is also scored at those
 probe pixels so the gap reads off directly.
 """
@@ -32,17 +34,21 @@ from pipeline.systems.trainer import stage_trainer
 from pipeline.tracking import stage_run, write_metrics
 
 
-def mean_training_radiance(loader) -> torch.Tensor:
-    total, n = torch.zeros(3, dtype=torch.float64), 0
+def mean_training_radiance(loader) -> tuple[torch.Tensor, torch.Tensor]:
+    """Over every training probe texel: the mean radiance (3,), and the mean radiance in units of its
+    image's mean (3,), the constant of the exposure-scaled baseline."""
+    total, ratio, n = torch.zeros(3, dtype=torch.float64), torch.zeros(3, dtype=torch.float64), 0
     for batch in loader:
-        for light in batch.get("light", []):
+        scale = image_scale(batch["im"]).double()
+        for b, light in enumerate(batch.get("light", [])):
             for kind in ("surf", "free"):
                 r = torch.as_tensor(light[f"{kind}_radiance"], dtype=torch.float64).reshape(-1, 3)
                 total += r.sum(0)
+                ratio += r.sum(0) / scale[b]
                 n += len(r)
     if n == 0:
         raise ValueError("the training split has no lighting ground truth (run synthesize with lighting)")
-    return (total / n).float()
+    return (total / n).float(), (ratio / n).float()
 
 
 def hemisphere_lookup(
@@ -78,20 +84,25 @@ def hemisphere_lookup(
 
 
 @torch.no_grad()
-def baseline_metrics(batch: dict, constant: torch.Tensor, spp: int, stride: int, system: LightingSystem) -> dict:
-    """Constant-light errors (probes, stride-grid re-render) and the ground-truth-probe re-render at probe
-    pixels, with the model's re-render at the same pixels."""
+def baseline_metrics(
+    batch: dict, constant: torch.Tensor, ratio: torch.Tensor, spp: int, stride: int, system: LightingSystem
+) -> dict:
+    """Constant-light errors (probes, stride-grid re-render) for the mean training radiance `constant` and
+    for `ratio` times each image's mean (the same light at the photo's exposure), and the
+    ground-truth-probe re-render at probe pixels, with the model's re-render at the same pixels."""
     gen = torch.Generator().manual_seed(1234)
     fov = LightingSystem.fov(batch)
     out = {}
     scale = image_scale(batch["im"])
     for kind in ("surf", "free"):
         r = probe_rays(batch["light"], kind, None, None, gen, "cpu")
-        if r is not None:
-            pred = constant.expand_as(r[2])
-            out[f"constant/{kind}_light_relmse"] = float(relative_mse_metric(pred, r[2], scale[r[3]]))
-            out[f"constant/{kind}_light_nmse"] = float(normalised_mse(pred, r[2]))
-            out[f"constant/{kind}_light_log_l1"] = float(log_l1(pred, r[2], scale[r[3]]))
+        if r is None:
+            continue
+        preds = {"constant": constant.expand_as(r[2]), "scaled_constant": ratio * scale[r[3], None]}
+        for name, pred in preds.items():
+            out[f"{name}/{kind}_light_relmse"] = float(relative_mse_metric(pred, r[2], scale[r[3]]))
+            out[f"{name}/{kind}_light_nmse"] = float(normalised_mse(pred, r[2]))
+            out[f"{name}/{kind}_light_log_l1"] = float(log_l1(pred, r[2], scale[r[3]]))
     B, _, H, W = batch["im"].shape
     gt = {k: batch[k] for k in ("albedo", "normal", "material")}
     gt["depth"] = torch.where(batch["mask"][:, 0], batch["depth"][:, 0], torch.zeros_like(batch["depth"][:, 0]))
@@ -103,6 +114,8 @@ def baseline_metrics(batch: dict, constant: torch.Tensor, spp: int, stride: int,
     model_gb = system.gbuffers(batch)  # what the model sees (predicted or ground truth, per config)
     rgb, target, b = shade(pix, lambda idx, o, wi, b: constant.expand(len(wi), 3), model_gb)
     out["constant/render_psnr"] = float(psnr_tonemapped(rgb, target, scale[b]))
+    rgb, target, b = shade(pix, lambda idx, o, wi, b: ratio * scale[b, None], model_gb)
+    out["scaled_constant/render_psnr"] = float(psnr_tonemapped(rgb, target, scale[b]))
     # ground-truth probes, interpolated bilinearly between their texel centres
     probe_pix, probe_n, probe_rad = [], [], []
     for bi, light in enumerate(batch["light"]):
@@ -141,7 +154,7 @@ def run_train_lighting(cfg: DictConfig) -> dict[str, float]:
     dm = InteriorVerseDataModule(cfg.data_dir, batch_size=int(cfg.batch_size), seed=int(cfg.seed), lighting=True)
     dm.setup("fit")
     dm.setup("test")
-    constant = mean_training_radiance(dm.plain_loader("train"))
+    constant, ratio = mean_training_radiance(dm.plain_loader("train"))
     lt = cfg.lighting
     system = LightingSystem(
         light_net=OmegaConf.to_container(cfg.model.light_net, resolve=True),
@@ -186,7 +199,7 @@ def run_train_lighting(cfg: DictConfig) -> dict[str, float]:
         metrics[f"{mode}/val/render_psnr_last_epoch"] = last
         system.eval()
         rows = [
-            baseline_metrics(b, constant, int(lt.eval_spp), int(lt.eval_stride), system)
+            baseline_metrics(b, constant, ratio, int(lt.eval_spp), int(lt.eval_stride), system)
             for b in dm.plain_loader("test")
         ]
         for key in rows[0]:

@@ -71,6 +71,8 @@ def test_stage_reports_mode_metrics_and_baselines(micro_shards, tmp_path):
         "mixed/test/surf_light_relmse",
         "mixed/test/render_psnr",
         "baseline/constant/render_psnr",
+        "baseline/scaled_constant/render_psnr",
+        "baseline/scaled_constant/free_light_relmse",
         "baseline/gt_probes/render_psnr_at_probes",
         "baseline/model/render_psnr_at_probes",
         "mixed/val/render_psnr_before_training",

@@ -51,3 +51,17 @@ def test_relative_mse_loss_is_exposure_invariant_and_stationary_at_the_mean():
     c = torch.full((64, 3), float(target.mean()), dtype=torch.float64, requires_grad=True)
     relative_mse(c, target.expand(64, 3).contiguous(), scale=scale).backward()
     assert abs(float(c.grad.sum())) < 1e-9
+
+
+def test_mean_training_radiance_and_its_exposure_ratio():
+    from pipeline.systems.lighting_stage import mean_training_radiance
+
+    im = torch.ones(2, 3, 4, 4)
+    im[1] *= 4.0  # image means 1 and 4
+    light = [
+        {"surf_radiance": torch.full((1, 2, 2, 3), 2.0), "free_radiance": torch.full((1, 1, 2, 3), 2.0)},
+        {"surf_radiance": torch.full((1, 2, 2, 3), 8.0), "free_radiance": torch.full((1, 1, 2, 3), 8.0)},
+    ]
+    constant, ratio = mean_training_radiance([{"im": im, "light": light}])
+    assert torch.allclose(constant, torch.full((3,), 5.0))  # (6 texels x 2 + 6 x 8) / 12
+    assert torch.allclose(ratio, torch.full((3,), 2.0))  # every texel is twice its image's mean
