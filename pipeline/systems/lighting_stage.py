@@ -185,12 +185,11 @@ def run_train_lighting(cfg: DictConfig) -> dict[str, float]:
         last = float(trainer.validate(system, datamodule=dm, verbose=False)[0]["val/render_psnr"])
         # model selection on validation: the light loss's rare huge terms make late steps jumpy, so the
         # test split, the baselines' model row and model.pt use the best validated weights
-        chosen = "last"
+        chosen, after = "last", last
         if ckpt.best_model_path and ckpt.best_model_score is not None and float(ckpt.best_model_score) > last:
             best = torch.load(ckpt.best_model_path, map_location="cpu", weights_only=True)
             system.load_state_dict(best["state_dict"])
-            chosen = f"best (epoch {best['epoch']})"
-        after = max(last, float(ckpt.best_model_score)) if ckpt.best_model_score is not None else last
+            chosen, after = f"best (epoch {best['epoch']})", float(ckpt.best_model_score)
         mlflow.set_tag("test_weights", chosen)
         trainer.test(system, datamodule=dm, verbose=False)
         metrics = {f"{mode}/{k}": float(v) for k, v in trainer.callback_metrics.items() if k.startswith("test/")}
