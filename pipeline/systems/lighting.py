@@ -99,6 +99,13 @@ def probe_rays(lights: list[dict], kind: str, probes: int | None, texels: int | 
     return tuple(torch.cat(x).to(device) for x in (origins, dirs, rads, bidx, pix))
 
 
+def ray_classes(hit: torch.Tensor, u: torch.Tensor) -> dict[str, torch.Tensor]:
+    """Masks (N,) of the three kinds of LightNet ray: `hit` (SSRT hit, u < 0.5: mostly the local branch),
+    `uncertain` (hit, u >= 0.5: mostly the out-of-view branch) and `miss` (left the screen: out-of-view
+    only). The light errors are also reported per class, to show which branch an error comes from."""
+    return {"hit": hit & (u < 0.5), "uncertain": hit & (u >= 0.5), "miss": ~hit}
+
+
 def grid_pixels(mask: torch.Tensor, stride: int) -> torch.Tensor:
     """Flat indices (into B*H*W) of the valid pixels of mask (B, H, W) on every `stride`-th row and column."""
     grid = torch.zeros_like(mask)
@@ -170,6 +177,7 @@ class LightingSystem(L.LightningModule):
         self.optimizer_fn = optimizer
         self.generator = torch.Generator().manual_seed(int(seed))
         self.eval_rows: list[dict] = []
+        self.validated_at_step = -1
 
     # ------------------------------------------------------------------ pieces
     @torch.no_grad()
@@ -249,15 +257,21 @@ class LightingSystem(L.LightningModule):
             if r is None:
                 continue
             o, d, target, bidx, _ = r
-            pred = torch.cat(
-                [
-                    self.net(ctx, gb, fov, o[i : i + 8192], d[i : i + 8192], bidx[i : i + 8192], gen)["radiance"]
-                    for i in range(0, len(o), 8192)
-                ]
-            )
-            out[f"{kind}_light_relmse"] = float(relative_mse_metric(pred, target, ctx["scale"][bidx]))
+            chunks = [
+                self.net(ctx, gb, fov, o[i : i + 8192], d[i : i + 8192], bidx[i : i + 8192], gen)
+                for i in range(0, len(o), 8192)
+            ]
+            pred = torch.cat([c["radiance"] for c in chunks])
+            s = ctx["scale"][bidx]
+            out[f"{kind}_light_relmse"] = float(relative_mse_metric(pred, target, s))
             out[f"{kind}_light_nmse"] = float(normalised_mse(pred, target))
-            out[f"{kind}_light_log_l1"] = float(log_l1(pred, target, ctx["scale"][bidx]))
+            out[f"{kind}_light_log_l1"] = float(log_l1(pred, target, s))
+            hit, u = torch.cat([c["hit"] for c in chunks]), torch.cat([c["u"] for c in chunks])
+            for name, sel in ray_classes(hit, u).items():
+                out[f"{kind}_rays_{name}"] = float(sel.float().mean())
+                if sel.any():  # a batch without such rays adds nothing to that class's mean
+                    out[f"{kind}_light_relmse_{name}"] = float(relative_mse_metric(pred[sel], target[sel], s[sel]))
+                    out[f"{kind}_light_log_l1_{name}"] = float(log_l1(pred[sel], target[sel], s[sel]))
         pix = grid_pixels(batch["mask"][:, 0], self.eval_stride)
         rgb, target, b = self.render(ctx, gb, batch, fov, pix, self.eval_spp, gen)
         out["render_psnr"] = float(psnr_tonemapped(rgb, target, ctx["scale"][b]))
@@ -267,6 +281,10 @@ class LightingSystem(L.LightningModule):
     def validation_step(self, batch, batch_idx):
         for k, v in self.evaluate_batch(batch).items():
             self.log(f"val/{k}", v, batch_size=batch["im"].shape[0])
+
+    def on_validation_epoch_end(self):
+        if not self.trainer.sanity_checking:
+            self.validated_at_step = self.global_step  # lets the stage reuse the final epoch's validation
 
     def test_step(self, batch, batch_idx):
         row = self.evaluate_batch(batch)

@@ -6,6 +6,12 @@ test image's mean: what a network that ignores the image's content can still get
 ground-truth G-buffers re-rendered under the ground-truth probe light at the surface-probe pixels
 (the best any light model can do with this render layer at this spp). The model is also scored at those
 probe pixels so the gap reads off directly.
+
+Two oracle references read the light errors' scale: each probe's own mean and median radiance over its
+texels, from the ground truth. They know more than any model, except where in the probe the light
+comes from; a model trained to the light loss's fixed point (the conditional mean) that cannot place
+sources within a probe scores about like `probe_mean_oracle`, and the gap to `probe_median_oracle`
+shows how much relMSE and log-L1 reward a low, median-like prediction rather than the light's energy.
 """
 
 from __future__ import annotations
@@ -84,12 +90,33 @@ def hemisphere_lookup(
 
 
 @torch.no_grad()
+def probe_oracle_light(lights: list[dict], kind: str, scale: torch.Tensor) -> dict[str, tuple] | None:
+    """Each probe's ground-truth mean and (lower) median radiance over its texels, per channel, as the
+    prediction for each of its texels:
+    {"probe_mean_oracle" | "probe_median_oracle": (pred (M, 3), target (M, 3), scale (M,))} over the batch's
+    probes of `kind`, with scale (B,) the image means. None when the batch has no such probes."""
+    preds, targets, scales = {"probe_mean_oracle": [], "probe_median_oracle": []}, [], []
+    for b, light in enumerate(lights):
+        r = torch.as_tensor(light[f"{kind}_radiance"], dtype=torch.float32).flatten(1, 2)  # (P, T, 3)
+        if not len(r):
+            continue
+        preds["probe_mean_oracle"].append(r.mean(1, keepdim=True).expand_as(r).reshape(-1, 3))
+        preds["probe_median_oracle"].append(r.median(1, keepdim=True).values.expand_as(r).reshape(-1, 3))
+        targets.append(r.reshape(-1, 3))
+        scales.append(scale[b].expand(len(targets[-1])))
+    if not targets:
+        return None
+    target, s = torch.cat(targets), torch.cat(scales)
+    return {name: (torch.cat(p), target, s) for name, p in preds.items()}
+
+
 def baseline_metrics(
     batch: dict, constant: torch.Tensor, ratio: torch.Tensor, spp: int, stride: int, system: LightingSystem
 ) -> dict:
     """Constant-light errors (probes, stride-grid re-render) for the mean training radiance `constant` and
     for `ratio` times each image's mean (the same light at the photo's exposure), and the
-    ground-truth-probe re-render at probe pixels, with the model's re-render at the same pixels."""
+    ground-truth-probe re-render at probe pixels, with the model's re-render at the same pixels; the light
+    errors of the probe-mean and probe-median oracles."""
     gen = torch.Generator().manual_seed(1234)
     fov = LightingSystem.fov(batch)
     out = {}
@@ -99,10 +126,12 @@ def baseline_metrics(
         if r is None:
             continue
         preds = {"constant": constant.expand_as(r[2]), "scaled_constant": ratio * scale[r[3], None]}
-        for name, pred in preds.items():
-            out[f"{name}/{kind}_light_relmse"] = float(relative_mse_metric(pred, r[2], scale[r[3]]))
-            out[f"{name}/{kind}_light_nmse"] = float(normalised_mse(pred, r[2]))
-            out[f"{name}/{kind}_light_log_l1"] = float(log_l1(pred, r[2], scale[r[3]]))
+        cases = {name: (pred, r[2], scale[r[3]]) for name, pred in preds.items()}
+        cases.update(probe_oracle_light(batch["light"], kind, scale))
+        for name, (pred, target, s) in cases.items():
+            out[f"{name}/{kind}_light_relmse"] = float(relative_mse_metric(pred, target, s))
+            out[f"{name}/{kind}_light_nmse"] = float(normalised_mse(pred, target))
+            out[f"{name}/{kind}_light_log_l1"] = float(log_l1(pred, target, s))
     B, _, H, W = batch["im"].shape
     gt = {k: batch[k] for k in ("albedo", "normal", "material")}
     gt["depth"] = torch.where(batch["mask"][:, 0], batch["depth"][:, 0], torch.zeros_like(batch["depth"][:, 0]))
@@ -182,7 +211,10 @@ def run_train_lighting(cfg: DictConfig) -> dict[str, float]:
         # the first validation pass (before any training step) records the starting re-render PSNR
         start = trainer.validate(system, datamodule=dm, verbose=False)[0]
         trainer.fit(system, datamodule=dm)
-        last = float(trainer.validate(system, datamodule=dm, verbose=False)[0]["val/render_psnr"])
+        if system.validated_at_step == trainer.global_step:  # the last epoch was validated: same weights
+            last = float(trainer.callback_metrics["val/render_psnr"])
+        else:
+            last = float(trainer.validate(system, datamodule=dm, verbose=False)[0]["val/render_psnr"])
         # model selection on validation: the light loss's rare huge terms make late steps jumpy, so the
         # test split, the baselines' model row and model.pt use the best validated weights
         chosen, after = "last", last

@@ -73,11 +73,17 @@ def test_stage_reports_mode_metrics_and_baselines(micro_shards, tmp_path):
         "baseline/constant/render_psnr",
         "baseline/scaled_constant/render_psnr",
         "baseline/scaled_constant/free_light_relmse",
+        "baseline/probe_mean_oracle/surf_light_nmse",
+        "baseline/probe_median_oracle/free_light_log_l1",
         "baseline/gt_probes/render_psnr_at_probes",
         "baseline/model/render_psnr_at_probes",
         "mixed/val/render_psnr_before_training",
     ):
         assert np.isfinite(metrics[key]), key
+    for kind in ("surf", "free"):  # every probe ray falls in exactly one ray class
+        shares = [metrics[f"mixed/test/{kind}_rays_{c}"] for c in ("hit", "uncertain", "miss")]
+        assert sum(shares) == pytest.approx(1.0), kind
+        assert np.isfinite(metrics[f"mixed/test/{kind}_light_relmse_miss"])
     assert (tmp_path / "outputs" / "train_lighting" / "model.pt").is_file()
     assert (tmp_path / "reports" / "train_lighting" / "metrics.json").is_file()
     # the test split is scored with the best validated weights: never worse on val than the last epoch

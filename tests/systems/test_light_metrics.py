@@ -4,7 +4,7 @@ import math
 
 import torch
 
-from pipeline.systems.lighting import log_l1, normalised_mse, psnr_tonemapped, relative_mse_metric
+from pipeline.systems.lighting import log_l1, normalised_mse, psnr_tonemapped, ray_classes, relative_mse_metric
 
 
 def test_relmse_by_hand_and_exposure_invariant():
@@ -65,3 +65,30 @@ def test_mean_training_radiance_and_its_exposure_ratio():
     constant, ratio = mean_training_radiance([{"im": im, "light": light}])
     assert torch.allclose(constant, torch.full((3,), 5.0))  # (6 texels x 2 + 6 x 8) / 12
     assert torch.allclose(ratio, torch.full((3,), 2.0))  # every texel is twice its image's mean
+
+
+def test_ray_classes_partition_every_ray_by_hit_and_confidence():
+    hit = torch.tensor([True, True, True, False, False])
+    u = torch.tensor([0.0, 0.49, 0.5, 1.0, 0.2])
+    masks = ray_classes(hit, u)
+    assert masks["hit"].tolist() == [True, True, False, False, False]
+    assert masks["uncertain"].tolist() == [False, False, True, False, False]
+    assert masks["miss"].tolist() == [False, False, False, True, True]
+    assert (sum(m.long() for m in masks.values()) == 1).all()
+
+
+def test_probe_oracles_predict_each_probes_own_mean_and_median():
+    from pipeline.systems.lighting_stage import probe_oracle_light
+
+    texels = torch.tensor([1.0, 2.0, 3.0, 10.0])  # one probe of 2 x 2 texels, grey
+    lights = [
+        {"surf_radiance": texels.view(1, 2, 2, 1).expand(1, 2, 2, 3).numpy()},
+        {"surf_radiance": torch.zeros(0, 2, 2, 3).numpy()},  # a view without probes adds nothing
+    ]
+    out = probe_oracle_light(lights, "surf", torch.tensor([2.0, 5.0]))
+    pred, target, scale = out["probe_mean_oracle"]
+    torch.testing.assert_close(pred, torch.full((4, 3), 4.0))
+    torch.testing.assert_close(target[:, 0], texels)
+    torch.testing.assert_close(scale, torch.full((4,), 2.0))
+    torch.testing.assert_close(out["probe_median_oracle"][0], torch.full((4, 3), 2.0))  # the lower median
+    assert probe_oracle_light(lights[1:], "surf", torch.tensor([5.0])) is None
