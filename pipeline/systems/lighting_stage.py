@@ -36,6 +36,7 @@ from pipeline.systems.lighting import (
     relative_mse_metric,
     render_pixels,
 )
+from pipeline.systems.lighting_figures import lighting_figures
 from pipeline.systems.trainer import stage_trainer
 from pipeline.tracking import stage_run, write_metrics
 
@@ -246,4 +247,8 @@ def run_train_lighting(cfg: DictConfig) -> dict[str, float]:
         )
         write_metrics(report / "metrics.json", metrics)
         mlflow.log_metrics({k.replace("/", "."): v for k, v in metrics.items()})
+        if int(lt.figure_views) > 0:
+            batch = next(iter(dm.plain_loader("test", batch_size=int(lt.figure_views))))
+            for figure in lighting_figures(system, batch, ratio, int(lt.eval_spp), report):
+                mlflow.log_artifact(str(figure), "figures")
     return metrics

@@ -133,3 +133,51 @@ def ranked_cases(net, meta, nyu_root, rows: list[dict], key: str, path: str | Pa
     ):
         ax.set_title(title, fontsize=8)
     return save(fig, path)
+
+
+def rerender_comparison(views: list[dict], path: str | Path, title: str = "") -> Path:
+    """One row per view: the input, LightNet's re-render, the constant light's re-render (at the photo's
+    exposure) and |LightNet - input| in units of the image mean. views: {"id", "input", "model",
+    "constant": (H, W, 3) HDR arrays (NaN where nothing was rendered), "scale": image mean, "psnr":
+    {"model": dB, "constant": dB}}. A row's panels share the input's exposure, so brightness compares."""
+    cols = ("input", "LightNet re-render", "constant-light re-render", "|error| / image mean")
+    fig, axes = plt.subplots(len(views), len(cols), figsize=(2.4 * len(cols), 1.9 * len(views)), squeeze=False)
+    for row, v in zip(axes, views, strict=True):
+        x = np.nan_to_num(v["input"], nan=0.0)
+        exposure = 0.3 / max(float(np.median(x[x > 0])) if (x > 0).any() else 1.0, 1e-6)
+        err = np.abs(v["model"] - v["input"]).mean(-1) / v["scale"]
+        panels = [tonemap(v[k], exposure) for k in ("input", "model", "constant")] + [np.nan_to_num(err, nan=0.0)]
+        for c, (ax, img) in enumerate(zip(row, panels, strict=True)):
+            ax.imshow(img, cmap=None if img.ndim == 3 else "magma", vmin=0, vmax=1)
+            ax.set_xticks([]), ax.set_yticks([])
+            if c == 1:
+                ax.set_xlabel(f"{v['psnr']['model']:.1f} dB", fontsize=7)
+            if c == 2:
+                ax.set_xlabel(f"{v['psnr']['constant']:.1f} dB", fontsize=7)
+        row[0].set_ylabel(str(v["id"]), fontsize=6)
+    for ax, name in zip(axes[0], cols, strict=True):
+        ax.set_title(name, fontsize=8)
+    return save(fig, path, title)
+
+
+def envmap_comparison(rows: list[dict], path: str | Path, title: str = "") -> Path:
+    """One row per probe: the input (a surface probe's pixel marked), then the ground-truth and the
+    predicted incident radiance as lat-long maps (rows: polar angle from the probe's normal, or from +y
+    for a free point's sphere; columns: azimuth). rows: {"label", "input" (H, W, 3), "pixel": (row, col)
+    or None, "gt", "pred": (R, C, 3) HDR}. A row shares the input's exposure."""
+    cols = ("probe", "ground truth", "LightNet")
+    fig, axes = plt.subplots(len(rows), len(cols), figsize=(2.6 * len(cols), 1.5 * len(rows)), squeeze=False)
+    for row, r in zip(axes, rows, strict=True):
+        x = np.nan_to_num(r["input"], nan=0.0)
+        exposure = 0.3 / max(float(np.median(x[x > 0])) if (x > 0).any() else 1.0, 1e-6)
+        row[0].imshow(tonemap(r["input"], exposure))
+        if r["pixel"] is not None:
+            row[0].plot([r["pixel"][1]], [r["pixel"][0]], "o", ms=5, mfc="none", mec="cyan")
+        for ax, key in zip(row[1:], ("gt", "pred"), strict=True):
+            ax.imshow(tonemap(r[key], exposure), aspect="auto", interpolation="nearest")
+        for ax in row:
+            ax.set_xticks([]), ax.set_yticks([])
+        row[0].set_ylabel(r["label"], fontsize=6)
+    for ax, name in zip(axes[0], cols, strict=True):
+        ax.set_title(name, fontsize=8)
+    return save(fig, path, title)

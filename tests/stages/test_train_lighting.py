@@ -85,7 +85,8 @@ def test_stage_reports_mode_metrics_and_baselines(micro_shards, tmp_path):
         assert sum(shares) == pytest.approx(1.0), kind
         assert np.isfinite(metrics[f"mixed/test/{kind}_light_relmse_miss"])
     assert (tmp_path / "outputs" / "train_lighting" / "model.pt").is_file()
-    assert (tmp_path / "reports" / "train_lighting" / "metrics.json").is_file()
+    for name in ("metrics.json", "rerender.png", "envmaps.png"):
+        assert (tmp_path / "reports" / "train_lighting" / name).is_file(), name
     # the test split is scored with the best validated weights: never worse on val than the last epoch
     assert metrics["mixed/val/render_psnr_after_training"] >= metrics["mixed/val/render_psnr_last_epoch"]
     best = torch.load(tmp_path / "outputs" / "train_lighting" / "checkpoints" / "best.ckpt", weights_only=True)

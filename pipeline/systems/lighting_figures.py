@@ -1,0 +1,129 @@
+"""Figures of a trained LightNet on fixed test views: re-render vs input, predicted vs ground-truth probes.
+
+Both are written as PNG under the stage's report folder and logged to MLflow by the stage. Everything
+here is deterministic (fixed generators, fixed probe picks), so runs compare figure to figure.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from pipeline.systems.lighting import PROBE_EPS, LightingSystem, grid_pixels, psnr_tonemapped, render_pixels
+from pipeline.tracking.figures import envmap_comparison, rerender_comparison
+
+
+def scatter_grid(values: torch.Tensor, pixels: torch.Tensor, shape: tuple, stride: int) -> np.ndarray:
+    """Place values (M, 3) of flat pixel indices (M,) (into B*H*W, all on the stride grid) into
+    (B, ceil(H / stride), ceil(W / stride), 3) images; NaN where no pixel was given."""
+    B, H, W = shape
+    h, w = -(-H // stride), -(-W // stride)
+    out = torch.full((B, h, w, 3), float("nan"))
+    b, rc = pixels // (H * W), pixels % (H * W)
+    out[b, (rc // W) // stride, (rc % W) // stride] = values.detach().float().cpu()
+    return out.numpy()
+
+
+@torch.no_grad()
+def rerender_views(system: LightingSystem, batch: dict, ratio: torch.Tensor, spp: int, stride: int = 2) -> list[dict]:
+    """Re-render every valid pixel of the views' stride grid with LightNet and with the constant light at
+    the photo's exposure (`ratio` times the image mean, the `scaled_constant` baseline); same directions."""
+    fov = system.fov(batch)
+    gb = system.gbuffers(batch)
+    ctx = system.net.encode(batch["im"], gb["depth"], fov)
+    scale = ctx["scale"]
+    pix = grid_pixels(batch["mask"][:, 0], stride)
+    model, target, b = system.render(ctx, gb, batch, fov, pix, spp, torch.Generator().manual_seed(1234))
+    const, _, _ = render_pixels(
+        gb,
+        batch["im"],
+        fov,
+        pix,
+        lambda idx, o, wi, bi: ratio * scale[bi, None],
+        spp,
+        torch.Generator().manual_seed(1234),
+    )
+    B, _, H, W = batch["im"].shape
+    images = {k: scatter_grid(v, pix, (B, H, W), stride) for k, v in (("model", model), ("constant", const))}
+    views = []
+    for v in range(B):
+        sel = b == v
+        psnr = {
+            k: float(psnr_tonemapped(x[sel], target[sel], scale[b[sel]]))
+            for k, x in (("model", model), ("constant", const))
+        }
+        inp = batch["im"][v, :, ::stride, ::stride].permute(1, 2, 0).float().cpu().numpy()
+        views.append(
+            {
+                "id": batch["id"][v],
+                "input": inp,
+                "model": images["model"][v],
+                "constant": images["constant"][v],
+                "scale": float(scale[v]),
+                "psnr": psnr,
+            }
+        )
+    return views
+
+
+def spread_indices(n: int, k: int) -> list[int]:
+    """k indices spread evenly over range(n) (fewer if n < k)."""
+    return sorted({int(i) for i in np.linspace(0, n - 1, min(k, n)).round()}) if n else []
+
+
+@torch.no_grad()
+def probe_envmaps(system: LightingSystem, batch: dict, surface: int = 2, free: int = 1) -> list[dict]:
+    """For each view: `surface` surface probes and `free` free points (evenly spread over the view's
+    probe lists), each with its ground-truth map and LightNet's prediction at the same texel directions."""
+    fov = system.fov(batch)
+    gb = system.gbuffers(batch)
+    ctx = system.net.encode(batch["im"], gb["depth"], fov)
+    rows = []
+    for v, light in enumerate(batch["light"]):
+        inp = batch["im"][v].permute(1, 2, 0).float().cpu().numpy()
+        for kind, k in (("surf", surface), ("free", free)):
+            for i in spread_indices(len(light[f"{kind}_position"]), k):
+                d = torch.as_tensor(light[f"{kind}_directions"][i], dtype=torch.float32)  # (R, C, 3)
+                o = torch.as_tensor(light[f"{kind}_position"][i], dtype=torch.float32)
+                pixel = None
+                if kind == "surf":
+                    o = o + PROBE_EPS * torch.as_tensor(light["surf_normal"][i], dtype=torch.float32)
+                    pixel = tuple(int(x) for x in light["surf_pixel"][i])
+                n = d.shape[0] * d.shape[1]
+                pred = system.net(
+                    ctx,
+                    gb,
+                    fov,
+                    o.expand(n, 3),
+                    d.reshape(-1, 3),
+                    torch.full((n,), v, dtype=torch.long),
+                    torch.Generator().manual_seed(1234),
+                )["radiance"]
+                label = f"{batch['id'][v]}\n{'surface' if kind == 'surf' else 'free point'} {i}"
+                rows.append(
+                    {
+                        "label": label,
+                        "input": inp,
+                        "pixel": pixel,
+                        "gt": np.asarray(light[f"{kind}_radiance"][i], dtype=np.float32),
+                        "pred": pred.reshape(d.shape).cpu().numpy(),
+                    }
+                )
+    return rows
+
+
+def lighting_figures(system: LightingSystem, batch: dict, ratio: torch.Tensor, spp: int, report: Path) -> list[Path]:
+    """rerender.png and envmaps.png for the views of `batch` under `report`; returns their paths."""
+    system.eval()
+    return [
+        rerender_comparison(
+            rerender_views(system, batch, ratio, spp),
+            report / "rerender.png",
+            title=f"test views, re-render at {spp} spp (every 2nd pixel)",
+        ),
+        envmap_comparison(
+            probe_envmaps(system, batch), report / "envmaps.png", title="incident radiance at test probes (lat-long)"
+        ),
+    ]
