@@ -29,6 +29,29 @@ def test_generated_mlp_equals_an_ordinary_mlp_with_the_same_weights():
         assert torch.allclose(out[sel], mlp(x[sel]), atol=1e-6)
 
 
+def test_generated_mlp_gradients_match_a_per_point_weight_gather():
+    # the grouped evaluation must give the same values and weight gradients as gathering W[scene[i]] per
+    # point, also with a scene that has no points
+    torch.manual_seed(1)
+    hyper = HyperMLP(feature_dim=5, sizes=[4, 6, 2]).double()
+    feature = torch.randn(3, 5, dtype=torch.float64, requires_grad=True)
+    x = torch.randn(9, 4, dtype=torch.float64)
+    scene = torch.tensor([2, 0, 2, 0, 0, 2, 2, 0, 0])  # scene 1 is empty
+
+    def gathered(params):
+        h = x
+        for k, (w, b) in enumerate(params):
+            h = torch.einsum("noi,ni->no", w[scene], h) + b[scene]
+            h = h.relu() if k < len(params) - 1 else h
+        return h
+
+    a = HyperMLP.apply(hyper(feature), x, scene)
+    (ga,) = torch.autograd.grad(a.square().sum(), feature)
+    b = gathered(hyper(feature))
+    (gb,) = torch.autograd.grad(b.square().sum(), feature)
+    assert torch.allclose(a, b, atol=1e-12) and torch.allclose(ga, gb, atol=1e-10)
+
+
 def test_volume_rendering_matches_the_closed_form():
     # constant density s and radiance c on [t0, t1]: L = c (1 - exp(-s (t1 - t0))), for any stratification
     t0, t1, s, c = torch.tensor([0.5, 1.0]), torch.tensor([2.5, 1.2]), 0.8, torch.tensor([1.0, 2.0, 3.0])
