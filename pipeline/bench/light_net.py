@@ -7,6 +7,8 @@ query threshold saves.
 2. With the trained model (outputs/train_lighting/model.pt, when present) on the test views: re-render
    PSNR, light errors and the fraction of out-of-view queries for several thresholds (0 = the paper's
    evaluate-everything).
+3. The generated (hypernetwork) MLP evaluated per scene as dense matrix products (`HyperMLP.apply`)
+   against gathering a weight matrix per point, forward + backward, side by side.
 Writes reports/bench/light_net.json and a PNG.
 """
 
@@ -26,6 +28,8 @@ from tqdm import tqdm  # noqa: E402
 from pipeline.bench.common import median_seconds, publish  # noqa: E402
 from pipeline.bench.scenes import BoxRoom, ssrt_rays  # noqa: E402
 from pipeline.models.light_net import MODES, LightNet  # noqa: E402
+from pipeline.models.light_net.hyper import HyperMLP  # noqa: E402
+from pipeline.ops.encodings import fourier_dim  # noqa: E402
 from pipeline.ops.mc import estimate  # noqa: E402
 
 SMALL = {
@@ -110,6 +114,39 @@ def _mode_row(mode: str, H: int, W: int, repeats: int) -> dict:
     return row
 
 
+def _gathered_apply(params, x, scene):
+    """Reference evaluation: every point gathers its scene's weight matrices (N, out, in)."""
+    for k, (w, b) in enumerate(params):
+        x = torch.einsum("noi,ni->no", w[scene], x) + b[scene]
+        x = torch.relu(x) if k < len(params) - 1 else x
+    return x
+
+
+def hyper_apply(points: int = 65536, scenes: int = 4, repeats: int = 3) -> dict:
+    """Forward + backward seconds of the generated NeRF MLP (SMALL sizes) on `points` samples of
+    `scenes` scenes: grouped (HyperMLP.apply) vs per-point weight gather, and their ratio."""
+    o = SMALL["out_of_view"]
+    sizes = [fourier_dim(3, o["frequencies"])] + [o["nerf_hidden"]] * o["nerf_layers"] + [4]
+    torch.manual_seed(0)
+    hyper = HyperMLP(o["feature_dim"], sizes)
+    feature = torch.randn(scenes, o["feature_dim"])
+    x = torch.randn(points, sizes[0])
+    scene = torch.randint(0, scenes, (points,))
+
+    def step(fn):
+        fn(hyper(feature), x, scene).square().sum().backward()
+
+    grouped = median_seconds(lambda: step(HyperMLP.apply), repeats)
+    gathered = median_seconds(lambda: step(_gathered_apply), repeats)
+    return {
+        "points": points,
+        "scenes": scenes,
+        "grouped_seconds": grouped,
+        "gathered_seconds": gathered,
+        "gathered_over_grouped": gathered / grouped,
+    }
+
+
 @torch.no_grad()
 def thresholds(model_path: Path, data_dir: str, values=(0.0, 0.25, 0.5, 0.9)) -> list[dict]:
     """Re-render PSNR, light errors and out-of-view query fraction of the trained model per threshold."""
@@ -152,8 +189,10 @@ def run(
     repeats: int = 3,
     model_path="outputs/train_lighting/model.pt",
     data_dir="outputs/preprocess",
+    hyper_points: int = 65536,
 ) -> dict:
     report = {"threads": torch.get_num_threads(), "sizes": SMALL, "speed": speed(resolutions, repeats)}
+    report["hyper_apply"] = hyper_apply(hyper_points, repeats=repeats)
     if Path(model_path).is_file():
         report["thresholds"] = thresholds(Path(model_path), data_dir)
         report["thresholds_model"] = str(model_path)

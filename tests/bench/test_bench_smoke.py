@@ -30,6 +30,17 @@ def test_ssrt_bench_runs_small():
     assert report["results"][0]["recall"] == report["results"][1]["recall"]
 
 
+def test_light_net_bench_runs_small(tmp_path):
+    from pipeline.bench import light_net
+
+    report = light_net.run(resolutions=((24, 32),), repeats=1, model_path=str(tmp_path / "none.pt"), hyper_points=512)
+    assert {r["mode"] for r in report["speed"]} == {"mixed", "ssrt_only", "out_of_view_only"}
+    assert all(r["queries_per_second"] > 0 for r in report["speed"])
+    h = report["hyper_apply"]
+    assert h["gathered_over_grouped"] == pytest.approx(h["gathered_seconds"] / h["grouped_seconds"])
+    assert report["thresholds"] == [] and "not found" in report["thresholds_note"]
+
+
 @pytest.mark.slow
 def test_material_net_bench_runs_small(micro_shards, tmp_path):
     from pipeline.bench import material_net
