@@ -111,6 +111,7 @@ def probe_oracle_light(lights: list[dict], kind: str, scale: torch.Tensor) -> di
     return {name: (torch.cat(p), target, s) for name, p in preds.items()}
 
 
+@torch.no_grad()
 def baseline_metrics(
     batch: dict, constant: torch.Tensor, ratio: torch.Tensor, spp: int, stride: int, system: LightingSystem
 ) -> dict:
