@@ -4,8 +4,9 @@ Baselines on the same test views: a constant light (the mean incident radiance o
 the same at each photo's exposure (the training probes' mean in units of their image's mean, times the
 test image's mean: what a network that ignores the image's content can still get right), and the
 ground-truth G-buffers re-rendered under the ground-truth probe light at the surface-probe pixels
-(the best any light model can do with this render layer at this spp). The model is also scored at those
-probe pixels so the gap reads off directly.
+(what a light model could do with this render layer at this spp if the probes were exact; coarse, noisy
+probes score below it, see README). The model is also scored at those probe pixels so the gap reads off
+directly.
 
 Two oracle references read the light errors' scale: each probe's own mean and median radiance over its
 texels, from the ground truth. They know more than any model, except where in the probe the light
