@@ -135,6 +135,13 @@ def ranked_cases(net, meta, nyu_root, rows: list[dict], key: str, path: str | Pa
     return save(fig, path)
 
 
+def _input_exposure(hdr: np.ndarray) -> float:
+    """The exposure `tonemap` would pick for this input (median positive value to 0.3), so the other
+    panels of a row can be shown at the input's exposure."""
+    x = np.nan_to_num(hdr, nan=0.0)
+    return 0.3 / max(float(np.median(x[x > 0])) if (x > 0).any() else 1.0, 1e-6)
+
+
 def rerender_comparison(views: list[dict], path: str | Path, title: str = "") -> Path:
     """One row per view: the input, LightNet's re-render, the constant light's re-render (at the photo's
     exposure) and |LightNet - input| in units of the image mean. views: {"id", "input", "model",
@@ -143,8 +150,7 @@ def rerender_comparison(views: list[dict], path: str | Path, title: str = "") ->
     cols = ("input", "LightNet re-render", "constant-light re-render", "|error| / image mean")
     fig, axes = plt.subplots(len(views), len(cols), figsize=(2.4 * len(cols), 1.9 * len(views)), squeeze=False)
     for row, v in zip(axes, views, strict=True):
-        x = np.nan_to_num(v["input"], nan=0.0)
-        exposure = 0.3 / max(float(np.median(x[x > 0])) if (x > 0).any() else 1.0, 1e-6)
+        exposure = _input_exposure(v["input"])
         err = np.abs(v["model"] - v["input"]).mean(-1) / v["scale"]
         panels = [tonemap(v[k], exposure) for k in ("input", "model", "constant")] + [np.nan_to_num(err, nan=0.0)]
         for c, (ax, img) in enumerate(zip(row, panels, strict=True)):
@@ -168,8 +174,7 @@ def envmap_comparison(rows: list[dict], path: str | Path, title: str = "") -> Pa
     cols = ("probe", "ground truth", "LightNet")
     fig, axes = plt.subplots(len(rows), len(cols), figsize=(2.6 * len(cols), 1.5 * len(rows)), squeeze=False)
     for row, r in zip(axes, rows, strict=True):
-        x = np.nan_to_num(r["input"], nan=0.0)
-        exposure = 0.3 / max(float(np.median(x[x > 0])) if (x > 0).any() else 1.0, 1e-6)
+        exposure = _input_exposure(r["input"])
         row[0].imshow(tonemap(r["input"], exposure))
         if r["pixel"] is not None:
             row[0].plot([r["pixel"][1]], [r["pixel"][0]], "o", ms=5, mfc="none", mec="cyan")
