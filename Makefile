@@ -45,6 +45,7 @@ test-fast: setup
 lint: setup
 	$(PY) -m ruff check pipeline stages tests
 	$(PY) -m ruff format --check pipeline stages tests
+	$(VENV)/bin/lint-imports
 
 ui: setup
 	@echo "MLflow UI on http://127.0.0.1:$(PORT) (Ctrl-C to stop)"

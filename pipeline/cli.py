@@ -43,9 +43,44 @@ def _sheet(args) -> int:
     return 0
 
 
-def _predict(args) -> int:
-    from pipeline.systems.material_predict import predict_files
+def output_name(path: Path) -> str:
+    """The output prefix of an input: its stem without a trailing `_im` (InteriorVerse names)."""
+    stem = path.stem
+    return stem[:-3] if stem.endswith("_im") else stem
 
+
+def predict_files(inputs: list[str | Path], out: str | Path, checkpoint: str | Path) -> list[Path]:
+    """`invrender predict`: MaterialNet maps of each input in the InteriorVerse conventions,
+    `<name>_{albedo,normal,depth,material}.exr` (depth in millimetres through the export's depth scale;
+    material R roughness, G metallic) and `<name>_preview.png`. Every input is read and checked, and the
+    export loaded, before anything is written; returns the written files."""
+    import numpy as np
+
+    from pipeline.data.formats.exr import write_exr
+    from pipeline.data.formats.photo import PhotoError, read_linear
+    from pipeline.models.export import load_material_export
+    from pipeline.models.material_net import predict_maps
+    from pipeline.tracking.figures import prediction_sheet
+
+    net, meta = load_material_export(checkpoint)
+    images = [(Path(p), read_linear(p)) for p in inputs]
+    names = [output_name(p) for p, _ in images]
+    if len(set(names)) != len(names):
+        raise PhotoError(f"inputs map to the same output name: {sorted(names)}")
+    out = Path(out)
+    out.mkdir(parents=True, exist_ok=True)
+    written = []
+    for (path, im), name in zip(images, names, strict=True):
+        maps = predict_maps(net, meta, im)
+        for key, arr in maps.items():
+            target = out / f"{name}_{key}.exr"
+            write_exr(target, np.ascontiguousarray(arr, np.float32))
+            written.append(target)
+        written.append(prediction_sheet(im, maps, out / f"{name}_preview.png", title=path.name))
+    return written
+
+
+def _predict(args) -> int:
     written = predict_files(args.inputs, args.out, args.checkpoint)
     for path in written:
         print(path)
@@ -54,11 +89,12 @@ def _predict(args) -> int:
 
 def _whdr(args) -> int:
     from pipeline.data import iiw
+    from pipeline.data.formats.photo import srgb_to_linear
     from pipeline.metrics.whdr import whdr
 
     photo = iiw.read_photo(Path(args.reflectance).parent, Path(args.reflectance).stem) / 255.0
     # like the IIW script: an 8-bit PNG is sRGB and decoded to linear unless --linear says it already is
-    reflectance = photo if args.linear else iiw.srgb_to_linear(photo)
+    reflectance = photo if args.linear else srgb_to_linear(photo)
     path = Path(args.judgements)
     judgements = iiw.read_judgements(path.parent, path.stem) if path.suffix == ".json" else None
     if judgements is None:
@@ -82,14 +118,14 @@ def main(argv: list[str] | None = None) -> int:
     s.set_defaults(func=_sheet)
     p = sub.add_parser(
         "predict",
-        help="albedo, normal, depth and material maps of your own images (EXR = HDR; PNG/JPG = sRGB, gamma 2.2)",
+        help="albedo, normal, depth and material maps of your own images (EXR = linear HDR; PNG/JPG = sRGB)",
     )
     p.add_argument("inputs", nargs="+", help="images: .exr (linear HDR), .png, .jpg")
     p.add_argument("--out", required=True, help="folder for <name>_{albedo,normal,depth,material}.exr + preview")
     p.add_argument(
         "--checkpoint",
         default=str(Path("outputs") / "train_material" / "model.pt"),
-        help="model.pt exported by train_material, or a Lightning .ckpt (default: %(default)s)",
+        help="MaterialNet export (model.pt of train_material or finetune; default: %(default)s)",
     )
     p.set_defaults(func=_predict)
     w = sub.add_parser("whdr", help="WHDR of a reflectance PNG against IIW judgements (as the IIW script)")
@@ -99,13 +135,14 @@ def main(argv: list[str] | None = None) -> int:
     w.add_argument("--delta", type=float, default=0.1)
     w.set_defaults(func=_whdr)
     args = parser.parse_args(argv)
+    from pipeline.data.formats.photo import PhotoError
     from pipeline.data.iiw import IIWError
     from pipeline.data.interiorverse import DatasetError
-    from pipeline.systems.material_predict import PredictError
+    from pipeline.models.export import ExportError
 
     try:
         return args.func(args)
-    except (DatasetError, PredictError, IIWError) as exc:
+    except (DatasetError, PhotoError, ExportError, IIWError) as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 2
 

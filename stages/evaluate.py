@@ -3,11 +3,7 @@
 import hydra
 from omegaconf import DictConfig
 
-from pipeline.systems.benchmark_stages import run_evaluate
-
-
-def run(cfg: DictConfig) -> dict[str, float]:
-    return run_evaluate(cfg)
+from pipeline.runs.evaluate import run
 
 
 @hydra.main(config_path="../conf", config_name="evaluate", version_base="1.3")

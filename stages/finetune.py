@@ -3,11 +3,7 @@
 import hydra
 from omegaconf import DictConfig
 
-from pipeline.systems.benchmark_stages import run_finetune
-
-
-def run(cfg: DictConfig) -> dict[str, float]:
-    return run_finetune(cfg)
+from pipeline.runs.finetune import run
 
 
 @hydra.main(config_path="../conf", config_name="finetune", version_base="1.3")

@@ -3,11 +3,7 @@
 import hydra
 from omegaconf import DictConfig
 
-from pipeline.systems.data_stages import run_preprocess
-
-
-def run(cfg: DictConfig) -> dict[str, float]:
-    return run_preprocess(cfg)
+from pipeline.runs.preprocess import run
 
 
 @hydra.main(config_path="../conf", config_name="preprocess", version_base="1.3")

@@ -3,11 +3,7 @@
 import hydra
 from omegaconf import DictConfig
 
-from pipeline.systems.data_stages import run_synthesize
-
-
-def run(cfg: DictConfig) -> dict[str, float]:
-    return run_synthesize(cfg)
+from pipeline.runs.synthesize import run
 
 
 @hydra.main(config_path="../conf", config_name="synthesize", version_base="1.3")

@@ -3,11 +3,7 @@
 import hydra
 from omegaconf import DictConfig
 
-from pipeline.systems.lighting_stage import run_train_lighting
-
-
-def run(cfg: DictConfig) -> dict[str, float]:
-    return run_train_lighting(cfg)
+from pipeline.runs.train_lighting import run
 
 
 @hydra.main(config_path="../conf", config_name="train_lighting", version_base="1.3")

@@ -3,11 +3,7 @@
 import hydra
 from omegaconf import DictConfig
 
-from pipeline.systems.material_stage import run_train_material
-
-
-def run(cfg: DictConfig) -> dict[str, float]:
-    return run_train_material(cfg)
+from pipeline.runs.train_material import run
 
 
 @hydra.main(config_path="../conf", config_name="train_material", version_base="1.3")

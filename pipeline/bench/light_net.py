@@ -7,7 +7,7 @@ query threshold saves.
 2. With the trained model (outputs/train_lighting/model.pt, when present) on the test views: re-render
    PSNR, light errors and the fraction of out-of-view queries for several thresholds (0 = the paper's
    evaluate-everything).
-3. The generated (hypernetwork) MLP evaluated per scene as dense matrix products (`HyperMLP.apply`)
+3. The generated (hypernetwork) MLP evaluated per scene as dense matrix products (`HyperMLP.run_generated`)
    against gathering a weight matrix per point, forward + backward, side by side.
 Writes reports/bench/light_net.json and a PNG.
 """
@@ -29,8 +29,8 @@ from pipeline.bench.common import median_seconds, publish  # noqa: E402
 from pipeline.bench.scenes import BoxRoom, ssrt_rays  # noqa: E402
 from pipeline.models.light_net import MODES, LightNet  # noqa: E402
 from pipeline.models.light_net.hyper import HyperMLP  # noqa: E402
+from pipeline.models.render_layer import MCRenderLayer  # noqa: E402
 from pipeline.ops.encodings import fourier_dim  # noqa: E402
-from pipeline.ops.mc import estimate  # noqa: E402
 
 SMALL = {
     "local": {"backbone": "small", "levels": 3, "frequencies": 4, "hidden": 64, "layers": 3},
@@ -67,7 +67,6 @@ def speed(resolutions, repeats: int) -> list[dict]:
 
 def _mode_row(mode: str, H: int, W: int, repeats: int) -> dict:
     from pipeline.models.light_net import _gbuffer_at, trace_views
-    from pipeline.ops.camera import backproject
 
     gb, im, fov, o, wi = _scene(H, W)
     bidx = torch.zeros(len(o), dtype=torch.long)
@@ -92,25 +91,15 @@ def _mode_row(mode: str, H: int, W: int, repeats: int) -> dict:
     )
     row["local_queries_per_second"] = len(h) / t_local
     row["out_of_view_queries_per_second"] = len(o) / t_out
-    # full-frame re-render: every valid pixel, 16 spp through the MC layer
-    mask = gb["depth"][0] > 0
-    n = torch.nn.functional.normalize(gb["normal"][0].permute(1, 2, 0)[mask], dim=-1)
-    pts = backproject(gb["depth"], fov)[0][mask]
-    origin = pts + 1e-3 * n
-    pb = torch.zeros(len(pts), dtype=torch.long)
+    # full-frame re-render: every valid pixel, 16 spp through the project's render layer
+    mask = gb["depth"] > 0
+    pixels = torch.nonzero(mask.reshape(-1)).squeeze(-1)
+    layer = MCRenderLayer("importance", spp=16)
+    gen = torch.Generator().manual_seed(0)
     t0 = time.perf_counter()
-    estimate(
-        lambda idx, d: net(ctx, gb, fov, origin[idx], d, pb[idx])["radiance"],
-        n,
-        torch.nn.functional.normalize(-pts, dim=-1),
-        gb["albedo"][0].permute(1, 2, 0)[mask],
-        gb["material"][0, 0][mask],
-        gb["material"][0, 1][mask],
-        16,
-        torch.Generator().manual_seed(0),
-    )
+    layer.render_pixels(gb, fov, pixels, lambda k, o, d, b: net(ctx, gb, fov, o, d, b)["radiance"], gen)
     row["rerender_seconds_16spp"] = time.perf_counter() - t0
-    row["rerender_pixels"] = int(mask.sum())
+    row["rerender_pixels"] = len(pixels)
     return row
 
 
@@ -124,7 +113,7 @@ def _gathered_apply(params, x, scene):
 
 def hyper_apply(points: int = 65536, scenes: int = 4, repeats: int = 3) -> dict:
     """Forward + backward seconds of the generated NeRF MLP (SMALL sizes) on `points` samples of
-    `scenes` scenes: grouped (HyperMLP.apply) vs per-point weight gather, and their ratio."""
+    `scenes` scenes: grouped (HyperMLP.run_generated) vs per-point weight gather, and their ratio."""
     o = SMALL["out_of_view"]
     sizes = [fourier_dim(3, o["frequencies"])] + [o["nerf_hidden"]] * o["nerf_layers"] + [4]
     torch.manual_seed(0)
@@ -136,7 +125,7 @@ def hyper_apply(points: int = 65536, scenes: int = 4, repeats: int = 3) -> dict:
     def step(fn):
         fn(hyper(feature), x, scene).square().sum().backward()
 
-    grouped = median_seconds(lambda: step(HyperMLP.apply), repeats)
+    grouped = median_seconds(lambda: step(HyperMLP.run_generated), repeats)
     gathered = median_seconds(lambda: step(_gathered_apply), repeats)
     return {
         "points": points,
@@ -151,8 +140,9 @@ def hyper_apply(points: int = 65536, scenes: int = 4, repeats: int = 3) -> dict:
 def thresholds(model_path: Path, data_dir: str, values=(0.0, 0.25, 0.5, 0.9)) -> list[dict]:
     """Re-render PSNR, light errors and out-of-view query fraction of the trained model per threshold."""
     from pipeline.data.datamodules import InteriorVerseDataModule
+    from pipeline.models.export import read_export
 
-    blob = torch.load(model_path, map_location="cpu", weights_only=True)
+    blob = read_export(model_path, "invrender.light_net/1")
     dm = InteriorVerseDataModule(data_dir, batch_size=4, lighting=True)
     dm.setup("test")
     return [_threshold_row(t, blob, dm) for t in tqdm(values, desc="out-of-view threshold")]
@@ -174,7 +164,8 @@ def _threshold_row(t: float, blob: dict, dm) -> dict:
     from pipeline.systems.lighting import LightingSystem
 
     cfg = {**blob["light_net"], "mode": "mixed", "out_threshold": t}
-    system = LightingSystem(light_net=cfg, material=None, gbuffers="ground_truth")
+    render = {"estimator": "importance", "spp": 8, "eval_spp": 16, "seed": 0}  # conf/render/importance.yaml
+    system = LightingSystem(light_net=cfg, material=None, render=render, gbuffers="ground_truth")
     system.net = _CountingLightNet(**cfg)
     system.net.load_state_dict(blob["state_dict"])
     system.eval()

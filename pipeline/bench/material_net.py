@@ -69,8 +69,8 @@ def short_training(backbone: str, data_dir: str, seconds: float) -> dict:
     """Train for `seconds` of wall clock with the stage's system and data, then score the test split."""
     import lightning as L
 
+    from pipeline.runs.train_material import build_datamodule, build_system
     from pipeline.systems.material import METRICS
-    from pipeline.systems.material_stage import build_datamodule, build_system
 
     cfg = _config(backbone, [f"data_dir={data_dir}", "trainer.max_epochs=1000", "figure_every=0"])
     L.seed_everything(0, verbose=False)

@@ -14,12 +14,13 @@ from torch.nn import functional as F
 from torch.utils.data import Dataset
 
 from pipeline.data import iiw, nyuv2
+from pipeline.data.formats.photo import srgb8_to_linear
 
 LABEL_CODES = {"1": 0, "2": 1, "E": 2}
 
 
 def _to_tensor_image(srgb8: np.ndarray, size: tuple[int, int]) -> torch.Tensor:
-    lin = torch.from_numpy(iiw.srgb_to_linear(srgb8 / 255.0).astype(np.float32)).permute(2, 0, 1)[None]
+    lin = torch.from_numpy(srgb8_to_linear(srgb8)).permute(2, 0, 1)[None]
     return F.interpolate(lin, size=size, mode="area")[0]
 
 

@@ -12,6 +12,7 @@ from torch.nn import functional as F
 from torch.utils.data import Dataset
 
 from pipeline.data import interiorverse as iv
+from pipeline.data.lighting import ViewLighting
 from pipeline.data.preprocess import SHARD_KEYS
 
 MAP_KEYS = ("im", "albedo", "normal", "depth", "material", "mask")
@@ -30,7 +31,7 @@ def read_manifest(root: str | Path) -> dict:
 class ShardDataset(Dataset):
     """Views of one split, held in memory. Item: dict of float tensors im/albedo/normal (3,H,W),
     depth (1,H,W) metres (0 = invalid), material (2,H,W) roughness+metallic, mask (1,H,W) bool,
-    fov_x_deg scalar, `id` "<scene>/<view>", and `light` (dict of tensors per view) when present."""
+    fov_x_deg scalar, `id` "<scene>/<view>", and `light` (`ViewLighting`) when present."""
 
     def __init__(self, root: str | Path, split: str, verify: bool = True, lighting: bool = True):
         if split not in iv.SPLITS:
@@ -70,7 +71,7 @@ class ShardDataset(Dataset):
         item["fov_x_deg"] = torch.tensor(float(self.arrays["fov_x_deg"][i]))
         item["id"] = self.ids[i]
         if self.light[i] is not None:
-            item["light"] = {k: torch.from_numpy(v) for k, v in self.light[i].items()}
+            item["light"] = ViewLighting.from_arrays(self.light[i])
         return item
 
 

@@ -54,17 +54,6 @@ def read_photo(root: str | Path, image_id: str) -> np.ndarray:
         raise IIWError(f"{path}: cannot read photo ({exc})") from exc
 
 
-def srgb_to_linear(v: np.ndarray) -> np.ndarray:
-    """The sRGB decoding curve on values in [0, 1]."""
-    v = np.asarray(v, np.float64)
-    return np.where(v <= 0.04045, v / 12.92, ((v + 0.055) / 1.055) ** 2.4)
-
-
-def linear_to_srgb(v: np.ndarray) -> np.ndarray:
-    v = np.clip(np.asarray(v, np.float64), 0.0, 1.0)
-    return np.where(v <= 0.0031308, 12.92 * v, 1.055 * v ** (1 / 2.4) - 0.055)
-
-
 def read_judgements(root: str | Path, image_id: str) -> dict:
     """The parsed JSON, checked: both lists present, points with id/x/y/opaque and coordinates in [0, 1),
     comparisons naming known points with a label in {"1", "2", "E", null} and a numeric or null weight."""

@@ -16,13 +16,14 @@ filled), `splits.mat` with 1-based train/test indices, and normal/mask PNGs numb
 from __future__ import annotations
 
 import json
+import shutil
 from collections.abc import Sequence
 from pathlib import Path
 
 import numpy as np
 
 from pipeline.data import nyuv2
-from pipeline.data.iiw import linear_to_srgb
+from pipeline.data.formats.photo import linear_to_srgb
 
 IIW_SOURCE, NYU_SOURCE = "standin-iiw", "standin-nyuv2"
 
@@ -123,3 +124,65 @@ def build_nyuv2(views: Sequence[dict], out: str | Path, test_every: int = 3) -> 
     )
     (out / "SOURCE.txt").write_text(f"{NYU_SOURCE}: built from synthetic views, not NYU Depth v2\n")
     return {"train": train, "test": test}
+
+
+def synthetic_test_views(data_dir: str | Path) -> list[dict]:
+    """The preprocess shards' test views as (H, W, C) arrays (im, albedo, normal, material; depth and
+    mask (H, W)), the source of both stand-ins."""
+    from pipeline.data.datasets import ShardDataset
+
+    ds = ShardDataset(data_dir, "test", lighting=False)
+    views = []
+    for i in range(len(ds)):
+        it = ds[i]
+        view = {k: it[k].permute(1, 2, 0).numpy() for k in ("im", "albedo", "normal", "material")}
+        views.append({"id": it["id"], **view, "depth": it["depth"][0].numpy(), "mask": it["mask"][0].numpy()})
+    if not views:
+        raise ValueError(f"{data_dir}: the synthetic test split is empty; cannot build stand-ins")
+    return views
+
+
+def benchmark_roots(
+    iiw_root: str | None,
+    nyuv2_root: str | None,
+    standin_dir: str | Path,
+    data_dir: str | Path,
+    seed: int,
+    points: int = 40,
+    comparisons: int = 60,
+    nyu_test_every: int = 3,
+) -> dict[str, tuple[Path, str]]:
+    """{"iiw": (root, source), "nyuv2": (root, source)}: the real roots where given (checked to exist),
+    otherwise stand-ins under `standin_dir` built from the synthetic test views. Stand-ins are reused only
+    when `done.json` records the same views, seed and settings; otherwise they are rebuilt."""
+    out = {}
+    standin = Path(standin_dir)
+    for key, real, source in (("iiw", iiw_root, IIW_SOURCE), ("nyuv2", nyuv2_root, NYU_SOURCE)):
+        if real:
+            if not Path(real).is_dir():
+                raise FileNotFoundError(f"{key}_root={real}: no such folder")
+            out[key] = (Path(real), key)
+        else:
+            out[key] = (standin / key, source)
+    if iiw_root and nyuv2_root:
+        return out
+    views = synthetic_test_views(data_dir)
+    record = {
+        "views": [v["id"] for v in views],
+        "seed": int(seed),
+        "points": int(points),
+        "comparisons": int(comparisons),
+        "nyu_test_every": int(nyu_test_every),
+    }
+    done = standin / "done.json"
+    try:
+        built = json.loads(done.read_text()) if done.is_file() else None
+    except json.JSONDecodeError:
+        built = None  # a torn write: rebuild
+    if built != record:
+        for key in ("iiw", "nyuv2"):  # no file of an older build may survive into the new one
+            shutil.rmtree(standin / key, ignore_errors=True)
+        build_iiw(views, standin / "iiw", int(seed), int(points), int(comparisons))
+        build_nyuv2(views, standin / "nyuv2", int(nyu_test_every))
+        done.write_text(json.dumps(record))
+    return out

@@ -13,6 +13,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
+import numpy as np
 import torch
 from torch import nn
 from torch.nn import functional as F
@@ -175,3 +176,31 @@ def load_backbone_weights(encoder: nn.Module, path: str | Path) -> None:
 
 def parameter_count(model: nn.Module) -> int:
     return sum(p.numel() for p in model.parameters())
+
+
+@torch.no_grad()
+def predict_maps(
+    net: MaterialNet, meta: dict, im: np.ndarray, renormalize_normals: bool = True
+) -> dict[str, np.ndarray]:
+    """One (H, W, 3) linear image -> maps at (H, W) in the InteriorVerse conventions: albedo (H, W, 3) linear,
+    normal (H, W, 3) unit view space (OpenGL), depth (H, W) z-depth in millimetres (the network's depth
+    times the export's `depth_scale`), material (H, W, 3) R roughness, G metallic, B 0. The network runs
+    at the export's training resolution `input_size` (the image is resized to it and the maps back).
+    Upsampled normals are renormalised unless `renormalize_normals` is off (the NYUv2 protocol scores
+    the bilinearly resized prediction as it is)."""
+    H, W = im.shape[:2]
+    x = torch.from_numpy(im).permute(2, 0, 1)[None]
+    size = meta["input_size"]  # (h, w) the network was trained at
+    x = F.interpolate(x, size=tuple(size), mode="area" if size[0] < H else "bilinear", align_corners=None)
+    pred = net(x)
+    back = {k: F.interpolate(v, size=(H, W), mode="bilinear", align_corners=False) for k, v in pred.items()}
+    if renormalize_normals:
+        back["normal"] = F.normalize(back["normal"], dim=1, eps=1e-6)
+    depth_m = back["depth"][0, 0] * float(meta["depth_scale"])
+    material = back["material"][0].permute(1, 2, 0).clamp(0, 1)
+    return {
+        "albedo": back["albedo"][0].permute(1, 2, 0).clamp(0, 1).numpy(),
+        "normal": back["normal"][0].permute(1, 2, 0).numpy(),
+        "depth": (depth_m * 1000.0).numpy(),
+        "material": torch.cat([material, torch.zeros_like(material[..., :1])], -1).numpy(),
+    }

@@ -8,14 +8,17 @@ import torch
 from torch import nn
 
 from pipeline.ops import mc
-from pipeline.ops.camera import pixel_directions
+from pipeline.ops.camera import RAY_OFFSET_M, backproject_views, pixel_directions
 
 # radiance(pixel index into the flattened (B, H, W) grid (M,), wi (M, 3) view space) -> L_i (M, 3)
 ImageRadianceFn = Callable[[torch.Tensor, torch.Tensor], torch.Tensor]
+# radiance(point index (K,), origin (K, 3), wi (K, 3), image index (K,)) -> L_i (K, 3), all view space
+PointRadianceFn = Callable[[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor], torch.Tensor]
 
 
 class MCRenderLayer(nn.Module):
-    """Re-renders G-buffers under an incident-radiance callback.
+    """Re-renders G-buffers under an incident-radiance callback: the one render path of the project
+    (training, baselines, evaluation and figures), configured by `conf/render/`.
 
     estimator: importance | uniform | li2020; spp: samples per valid pixel; adaptive: distribute
     spp x #valid samples by BRDF lobe (`mc.allocate_samples`) instead of evenly; li_size: (n_theta,
@@ -58,12 +61,7 @@ class MCRenderLayer(nn.Module):
         wo = -torch.nn.functional.normalize(view.reshape(-1, 3), dim=-1)[idx]
         n = torch.nn.functional.normalize(flat(normal)[idx], dim=-1)
         a, r, m = flat(albedo)[idx], flat(roughness)[idx, 0], flat(metallic)[idx, 0]
-        if self.estimator == "li2020":  # a fixed grid: one sample per cell
-            counts = torch.full_like(idx, self.li_size[0] * self.li_size[1])
-        elif self.adaptive:
-            counts = mc.allocate_samples(a, r, m, torch.ones_like(r, dtype=torch.bool), self.spp * len(idx))
-        else:
-            counts = torch.full_like(idx, self.spp)
+        counts = self.sample_counts(a, r, m)
 
         def local_radiance(k: torch.Tensor, wi: torch.Tensor) -> torch.Tensor:
             return radiance(idx[k], wi)
@@ -78,3 +76,51 @@ class MCRenderLayer(nn.Module):
         cnt[idx] = counts
         out["counts"] = cnt.reshape(B, 1, H, W)
         return out
+
+    def sample_counts(self, albedo: torch.Tensor, roughness: torch.Tensor, metallic: torch.Tensor) -> torch.Tensor:
+        """Samples per shading point (N,) long: the li2020 grid's cell count, the BRDF-lobe allocation of
+        spp x N samples (adaptive), or spp each."""
+        N = albedo.shape[0]
+        if self.estimator == "li2020":  # a fixed grid: one sample per cell
+            return torch.full((N,), self.li_size[0] * self.li_size[1], dtype=torch.long, device=albedo.device)
+        if self.adaptive:
+            valid = torch.ones_like(roughness, dtype=torch.bool)
+            return mc.allocate_samples(albedo, roughness, metallic, valid, self.spp * N)
+        return torch.full((N,), self.spp, dtype=torch.long, device=albedo.device)
+
+    def render_pixels(
+        self,
+        gbuffer: dict[str, torch.Tensor],
+        fov_x,
+        pixels: torch.Tensor,
+        radiance: PointRadianceFn,
+        generator: torch.Generator | None = None,
+    ) -> tuple[torch.Tensor, torch.Tensor]:
+        """Re-render flat pixel indices (M,) (into B*H*W) of G-buffers: depth (B, H, W) z-depth metres,
+        normal/albedo (B, 3, H, W), material (B, 2, H, W) roughness+metallic; fov_x degrees, one float or
+        (B,). Shading points are the back-projected pixels; secondary rays start RAY_OFFSET_M above them
+        along the normal. Returns (rgb (M, 3), image index (M,))."""
+        B, _, H, W = gbuffer["normal"].shape
+        b = pixels // (H * W)
+        rc = pixels % (H * W)
+        row, col = rc // W, rc % W
+        pts = backproject_views(gbuffer["depth"], fov_x)[b, row, col]
+        normal = torch.nn.functional.normalize(gbuffer["normal"][b, :, row, col], dim=-1)
+        origin = pts + RAY_OFFSET_M * normal
+        mat = gbuffer["material"][b, :, row, col]
+        albedo, rough, metal = gbuffer["albedo"][b, :, row, col], mat[:, 0], mat[:, 1]
+        wo = torch.nn.functional.normalize(-pts, dim=-1)
+        diffuse, specular = mc.estimate(
+            lambda k, wi: radiance(k, origin[k], wi, b[k]),
+            normal,
+            wo,
+            albedo,
+            rough,
+            metal,
+            self.sample_counts(albedo, rough, metal),
+            generator,
+            self.estimator,
+            self.chunk,
+            self.li_size,
+        )
+        return diffuse + specular, b

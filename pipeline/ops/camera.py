@@ -41,3 +41,21 @@ def project(points: torch.Tensor, fov_x: float, height: int, width: int) -> tupl
     x = points[..., 0] / z * f + width / 2
     y = -points[..., 1] / z * f + height / 2
     return torch.stack([x, y], -1), z
+
+
+def backproject_views(depth: torch.Tensor, fov_x) -> torch.Tensor:
+    """backproject for a batch whose views may differ in FOV: depth (B, H, W), fov_x float or (B,) degrees
+    -> (B, H, W, 3)."""
+    if not torch.is_tensor(fov_x) or fov_x.ndim == 0:
+        return backproject(depth, float(fov_x))
+    return torch.stack([backproject(depth[b : b + 1], float(fov_x[b]))[0] for b in range(depth.shape[0])])
+
+
+RAY_OFFSET_M = 1e-3  # secondary rays (probe queries, re-render samples) start this far above their surface
+
+
+def grid_pixels(mask: torch.Tensor, stride: int) -> torch.Tensor:
+    """Flat indices (into B*H*W) of the set pixels of mask (B, H, W) on every `stride`-th row and column."""
+    grid = torch.zeros_like(mask)
+    grid[:, ::stride, ::stride] = True
+    return torch.nonzero((grid & mask).reshape(-1)).squeeze(-1)

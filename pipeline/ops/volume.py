@@ -10,6 +10,8 @@ from __future__ import annotations
 
 import torch
 
+from pipeline.ops.camera import backproject_views
+
 
 def stratified_edges(t_near: torch.Tensor, t_far: torch.Tensor, samples: int, generator: torch.Generator | None):
     """Segment edges (N, S+1) splitting [t_near, t_far] (N,) into S equal strata, and one jittered sample
@@ -37,3 +39,27 @@ def composite(sigma: torch.Tensor, radiance: torch.Tensor, edges: torch.Tensor):
     weights = before * alpha
     left = torch.exp(-tau.sum(1))
     return (weights.unsqueeze(-1) * radiance).sum(1), weights, left
+
+
+def ray_box(origin: torch.Tensor, direction: torch.Tensor, lo: torch.Tensor, hi: torch.Tensor):
+    """Entry and exit distances (N,) of rays with a box (slab method), clamped to t >= 0; rays that miss
+    get an empty interval at 0."""
+    inv = 1.0 / torch.where(direction.abs() > 1e-9, direction, torch.full_like(direction, 1e-9))
+    t0, t1 = (lo - origin) * inv, (hi - origin) * inv
+    t_near = torch.minimum(t0, t1).amax(-1).clamp(min=0)
+    t_far = torch.maximum(t0, t1).amin(-1)
+    t_far = torch.maximum(t_far, t_near)
+    return t_near, t_far
+
+
+def scene_bounds(depth: torch.Tensor, fov_x, margin: float = 0.1) -> torch.Tensor:
+    """(B, H, W) z-depth (0 / non-finite = none), fov_x float or (B,) -> (B, 2, 3) view-space box of the
+    visible surfaces and the camera, grown by `margin` of its size (the out-of-view scene is assumed to
+    lie around them)."""
+    pts = backproject_views(torch.where(torch.isfinite(depth), depth, torch.zeros_like(depth)), fov_x)
+    valid = (torch.isfinite(depth) & (depth > 0)).unsqueeze(-1)
+    big = torch.finfo(depth.dtype).max
+    lo = torch.where(valid, pts, torch.full_like(pts, big)).flatten(1, 2).amin(1).clamp(max=0)
+    hi = torch.where(valid, pts, torch.full_like(pts, -big)).flatten(1, 2).amax(1).clamp(min=0)
+    pad = (hi - lo) * margin + 1e-2
+    return torch.stack([lo - pad, hi + pad], 1)

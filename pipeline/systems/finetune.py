@@ -23,6 +23,7 @@ class FinetuneSystem(L.LightningModule):
         weights: dict,
         loss: dict,
         optimizer: Callable,
+        scheduler: Callable | None = None,
         iiw_weight: float = 1.0,
         nyu_weight: float = 1.0,
         ranking_margin: float = 0.5,
@@ -32,7 +33,7 @@ class FinetuneSystem(L.LightningModule):
         self.net = MaterialNet(**model)
         self.net.load_state_dict(weights)
         self.loss = MaterialLoss(**loss)
-        self.optimizer_fn = optimizer
+        self.optimizer_fn, self.scheduler_fn = optimizer, scheduler
         self.iiw_weight, self.nyu_weight, self.margin = float(iiw_weight), float(nyu_weight), float(ranking_margin)
 
     def training_step(self, batch, batch_idx):
@@ -59,4 +60,7 @@ class FinetuneSystem(L.LightningModule):
         return total
 
     def configure_optimizers(self):
-        return self.optimizer_fn(self.parameters())
+        opt = self.optimizer_fn(self.parameters())
+        if self.scheduler_fn is None:
+            return opt
+        return {"optimizer": opt, "lr_scheduler": {"scheduler": self.scheduler_fn(opt), "interval": "epoch"}}

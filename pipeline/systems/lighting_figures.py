@@ -1,7 +1,8 @@
 """Figures of a trained LightNet on fixed test views: re-render vs input, predicted vs ground-truth probes.
 
-Both are written as PNG under the stage's report folder and logged to MLflow by the stage. Everything
-here is deterministic (fixed generators, fixed probe picks), so runs compare figure to figure.
+Both are written as PNG under the stage's report folder and logged to MLflow by the stage. Renders use
+the system's evaluation layer and generator (`render.seed`) and fixed probe picks, so runs compare figure
+to figure. This module runs inference and hands arrays to `tracking.figures`, which only draws.
 """
 
 from __future__ import annotations
@@ -11,7 +12,10 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from pipeline.systems.lighting import PROBE_EPS, LightingSystem, grid_pixels, psnr_tonemapped, render_pixels
+from pipeline.metrics.image import psnr_tonemapped
+from pipeline.ops.camera import grid_pixels
+from pipeline.systems.lighting import LightingSystem
+from pipeline.systems.lighting_baselines import Constants
 from pipeline.tracking.figures import envmap_comparison, rerender_comparison
 
 
@@ -27,24 +31,21 @@ def scatter_grid(values: torch.Tensor, pixels: torch.Tensor, shape: tuple, strid
 
 
 @torch.no_grad()
-def rerender_views(system: LightingSystem, batch: dict, ratio: torch.Tensor, spp: int, stride: int = 2) -> list[dict]:
+def rerender_views(system: LightingSystem, batch: dict, constants: Constants, stride: int = 2) -> list[dict]:
     """Re-render every valid pixel of the views' stride grid with LightNet and with the constant light at
-    the photo's exposure (`ratio` times the image mean, the `scaled_constant` baseline); same directions."""
+    the photo's exposure (the `scaled_constant` baseline); same directions."""
     fov = system.fov(batch)
     gb = system.gbuffers(batch)
     ctx = system.net.encode(batch["im"], gb["depth"], fov)
     scale = ctx["scale"]
     pix = grid_pixels(batch["mask"][:, 0], stride)
-    model, target, b = system.render(ctx, gb, batch, fov, pix, spp, torch.Generator().manual_seed(1234))
-    const, _, _ = render_pixels(
-        gb,
-        batch["im"],
-        fov,
-        pix,
-        lambda idx, o, wi, bi: ratio * scale[bi, None],
-        spp,
-        torch.Generator().manual_seed(1234),
+    layer, gen = system.eval_layer, system.eval_generator()
+    model, b = layer.render_pixels(gb, fov, pix, system.light_fn(ctx, gb, fov, gen), gen)
+    ratio = constants.ratio
+    const, _ = layer.render_pixels(
+        gb, fov, pix, lambda idx, o, wi, bi: ratio * scale[bi, None], system.eval_generator()
     )
+    target = batch["im"].permute(0, 2, 3, 1).reshape(-1, 3)[pix]
     B, _, H, W = batch["im"].shape
     images = {k: scatter_grid(v, pix, (B, H, W), stride) for k, v in (("model", model), ("constant", const))}
     views = []
@@ -84,13 +85,11 @@ def probe_envmaps(system: LightingSystem, batch: dict, surface: int = 2, free: i
     for v, light in enumerate(batch["light"]):
         inp = batch["im"][v].permute(1, 2, 0).float().cpu().numpy()
         for kind, k in (("surf", surface), ("free", free)):
-            for i in spread_indices(len(light[f"{kind}_position"]), k):
-                d = torch.as_tensor(light[f"{kind}_directions"][i], dtype=torch.float32)  # (R, C, 3)
-                o = torch.as_tensor(light[f"{kind}_position"][i], dtype=torch.float32)
-                pixel = None
-                if kind == "surf":
-                    o = o + PROBE_EPS * torch.as_tensor(light["surf_normal"][i], dtype=torch.float32)
-                    pixel = tuple(int(x) for x in light["surf_pixel"][i])
+            probes = light.kind(kind)
+            for i in spread_indices(len(probes), k):
+                d = probes.directions[i]  # (R, C, 3)
+                o = probes.origins()[i]
+                pixel = None if probes.pixel is None else tuple(int(x) for x in probes.pixel[i])
                 n = d.shape[0] * d.shape[1]
                 pred = system.net(
                     ctx,
@@ -99,7 +98,7 @@ def probe_envmaps(system: LightingSystem, batch: dict, surface: int = 2, free: i
                     o.expand(n, 3),
                     d.reshape(-1, 3),
                     torch.full((n,), v, dtype=torch.long),
-                    torch.Generator().manual_seed(1234),
+                    system.eval_generator(),
                 )["radiance"]
                 label = f"{batch['id'][v]}\n{'surface' if kind == 'surf' else 'free point'} {i}"
                 rows.append(
@@ -107,21 +106,21 @@ def probe_envmaps(system: LightingSystem, batch: dict, surface: int = 2, free: i
                         "label": label,
                         "input": inp,
                         "pixel": pixel,
-                        "gt": np.asarray(light[f"{kind}_radiance"][i], dtype=np.float32),
+                        "gt": probes.radiance[i].numpy().astype(np.float32),
                         "pred": pred.reshape(d.shape).cpu().numpy(),
                     }
                 )
     return rows
 
 
-def lighting_figures(system: LightingSystem, batch: dict, ratio: torch.Tensor, spp: int, report: Path) -> list[Path]:
+def lighting_figures(system: LightingSystem, batch: dict, constants: Constants, report: Path) -> list[Path]:
     """rerender.png and envmaps.png for the views of `batch` under `report`; returns their paths."""
     system.eval()
     return [
         rerender_comparison(
-            rerender_views(system, batch, ratio, spp),
+            rerender_views(system, batch, constants),
             report / "rerender.png",
-            title=f"test views, re-render at {spp} spp (every 2nd pixel)",
+            title=f"test views, re-render at {system.eval_layer.spp} spp (every 2nd pixel)",
         ),
         envmap_comparison(
             probe_envmaps(system, batch), report / "envmaps.png", title="incident radiance at test probes (lat-long)"

@@ -157,3 +157,12 @@ def ranking_loss(albedo: torch.Tensor, comparisons: list[dict], margin: float = 
         total = total + (w * per).sum()
         weight = weight + w.sum()
     return total / weight.clamp(min=1e-12)
+
+
+def hdr_relative_loss(pred: torch.Tensor, target: torch.Tensor, scale: torch.Tensor, eps: float = 1e-3):
+    """LightNet's HDR light loss: mean(((L^ - L) / (sg(L^) + eps))^2) of radiance in units of each
+    sample's image mean, scale (M,) (RawNeRF's relative MSE, no clipping). In those units the networks
+    predict, and an absolute eps would weigh a dim room's texels unlike a bright room's. Its fixed point
+    is the conditional mean; it is a loss, not the reported `metrics.lighting.relmse`."""
+    pred, target = pred / scale[:, None], target / scale[:, None]
+    return (((pred - target) / (pred.detach() + eps)) ** 2).mean()

@@ -2,5 +2,6 @@
 
 from pipeline.tracking.metrics_file import write_metrics
 from pipeline.tracking.mlflow_run import project_root, stage_run, tracking_uri
+from pipeline.tracking.publish import publish
 
-__all__ = ["project_root", "stage_run", "tracking_uri", "write_metrics"]
+__all__ = ["project_root", "publish", "stage_run", "tracking_uri", "write_metrics"]

@@ -99,38 +99,22 @@ def prediction_sheet(im: np.ndarray, maps: dict[str, np.ndarray], path: str | Pa
     return save(fig, path, title)
 
 
-def ranked_cases(net, meta, nyu_root, rows: list[dict], key: str, path: str | Path, k: int = 3) -> Path:
-    """Best and worst `k` NYUv2-layout test images by rows[key] (lower is better): input, ground-truth and
-    predicted normals, ground-truth and predicted depth (the latter median-scaled)."""
-    from pipeline.data import iiw, nyuv2
-    from pipeline.systems.material_predict import predict_maps
-
-    nyu_root = Path(nyu_root)
-    ranked = sorted((r for r in rows if np.isfinite(r[key])), key=lambda r: r[key])
-    picks = [("best", r) for r in ranked[:k]] + [("worst", r) for r in ranked[::-1][:k]]
-    fig, axes = plt.subplots(len(picks), 5, figsize=(10, 2.0 * max(len(picks), 1)), squeeze=False)
-    for row_axes, (tag, r) in zip(axes, picks, strict=True):
-        images, depths = nyuv2.read_labeled(nyu_root / "nyu_depth_v2_labeled.mat", [r["index"]])
-        gt_n, valid = nyuv2.read_normal(nyu_root / "normals", nyu_root / "masks", r["index"], depths[0].shape)
-        maps = predict_maps(net, meta, iiw.srgb_to_linear(images[0] / 255.0).astype(np.float32))
-        d = maps["depth"] / 1000.0
-        d = d * np.median(depths[0]) / max(float(np.median(d)), 1e-9)
-        vmax = float(np.percentile(depths[0], 99))
-        panels = [
-            (images[0], None),
-            (np.clip(gt_n * 0.5 + 0.5, 0, 1) * valid[..., None], None),
-            (np.clip(maps["normal"] * 0.5 + 0.5, 0, 1), None),
-            (depths[0], vmax),
-            (d, vmax),
-        ]
-        for c, (ax, (img, vm)) in enumerate(zip(row_axes, panels, strict=True)):
-            ax.imshow(img, cmap=None if img.ndim == 3 else "viridis", vmin=0, vmax=vm)
+def ranked_cases(panels: list[dict], path: str | Path) -> Path:
+    """One row per case: input photo, ground-truth and predicted normals (in [0, 1] for display),
+    ground-truth and predicted depth (m, one colour scale per row up to the ground truth's 99th
+    percentile). panels: {"label", "photo", "normal_gt", "normal_pred", "depth_gt", "depth_pred"}."""
+    keys = ("photo", "normal_gt", "normal_pred", "depth_gt", "depth_pred")
+    titles = ("input", "normal gt", "normal pred", "depth gt (m)", "depth pred (scaled)")
+    fig, axes = plt.subplots(len(panels), 5, figsize=(10, 2.0 * max(len(panels), 1)), squeeze=False)
+    for row_axes, p in zip(axes, panels, strict=True):
+        vmax = float(np.percentile(p["depth_gt"], 99))
+        for c, (ax, key) in enumerate(zip(row_axes, keys, strict=True)):
+            img = p[key]
+            ax.imshow(img, cmap=None if img.ndim == 3 else "viridis", vmin=0, vmax=vmax if img.ndim == 2 else None)
             ax.set_xticks([]), ax.set_yticks([])
             if c == 0:
-                ax.set_ylabel(f"{tag} #{r['index']}\n{key}={r[key]:.1f}", fontsize=7)
-    for ax, title in zip(
-        axes[0], ("input", "normal gt", "normal pred", "depth gt (m)", "depth pred (scaled)"), strict=True
-    ):
+                ax.set_ylabel(p["label"], fontsize=7)
+    for ax, title in zip(axes[0], titles, strict=True):
         ax.set_title(title, fontsize=8)
     return save(fig, path)
 

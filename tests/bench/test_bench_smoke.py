@@ -9,7 +9,8 @@ def test_render_layer_bench_runs_small():
     report = render_layer.run(quick=True, repeats=1, ref_spp=64, size=(12, 16))
     names = {r["estimator"] for r in report["results"]}
     assert names == {"importance", "uniform", "adaptive", "adaptive_uniform", "li2020"}
-    assert all(r["seconds"] > 0 and r["relmse_glossy"] >= 0 for r in report["results"])
+    imp = {r["samples_per_pixel"]: r for r in report["results"] if r["estimator"] == "importance"}
+    assert imp[16]["relmse_glossy"] < imp[1]["relmse_glossy"]  # error falls with samples (~1/N)
     ratios = report["summary"]["li2020_over_importance_glossy_error_at_equal_time"]
     assert len(ratios) == 2 and all(r["ratio"] > 0 for r in ratios)
 
@@ -35,9 +36,7 @@ def test_light_net_bench_runs_small(tmp_path):
 
     report = light_net.run(resolutions=((24, 32),), repeats=1, model_path=str(tmp_path / "none.pt"), hyper_points=512)
     assert {r["mode"] for r in report["speed"]} == {"mixed", "ssrt_only", "out_of_view_only"}
-    assert all(r["queries_per_second"] > 0 for r in report["speed"])
-    h = report["hyper_apply"]
-    assert h["gathered_over_grouped"] == pytest.approx(h["gathered_seconds"] / h["grouped_seconds"])
+    assert len(report["speed"]) == 3 and {(r["height"], r["width"]) for r in report["speed"]} == {(24, 32)}
     assert report["thresholds"] == [] and "not found" in report["thresholds_note"]
 
 

@@ -73,12 +73,10 @@ def test_preprocess_writes_loadable_shards(dataset_copy, tmp_path):
     )
     assert item["mask"].dtype.is_floating_point is False and item["mask"].any()
     assert (item["depth"][item["mask"]] > 0.3).all() and (item["depth"][~item["mask"]] == 0).all()
-    light = item["light"]
-    assert (
-        light["surf_radiance"].ndim == 4
-        and (light["surf_pixel"][:, 0] < 24).all()
-        and (light["surf_pixel"][:, 1] < 32).all()
-    )
+    light = item["light"]  # typed: ViewLighting with surf / free Probes
+    assert light.surf.radiance.ndim == 4 and light.surf.radiance.shape == light.surf.directions.shape
+    assert (light.surf.pixel[:, 0] < 24).all() and (light.surf.pixel[:, 1] < 32).all()
+    assert light.free.normal is None and light.free.radiance.shape[-1] == 3
     batch = collate_views([ds[0], ds[1]])
     assert batch["im"].shape == (2, 3, 24, 32) and len(batch["light"]) == 2 and batch["id"][0] == item["id"]
     scenes = {s: set(manifest["splits"][s]["scenes"]) for s in iv.SPLITS}

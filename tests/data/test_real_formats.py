@@ -60,9 +60,18 @@ def test_iiw_rejects_orphans_and_malformed_judgements(tmp_path):
         iiw.read_judgements(root, "2")
 
 
-def test_srgb_round_trip():
+def test_srgb_curve_anchors_and_inverse():
+    from pipeline.data.formats.photo import linear_to_srgb, srgb8_to_linear, srgb_to_linear
+
+    # IEC 61966-2-1: 0.5 decodes to 0.2140 (a gamma 2.2 would give 0.2176), the linear toe below 0.04045
+    assert srgb_to_linear(0.5) == pytest.approx(0.21404, abs=1e-5)
+    assert srgb_to_linear(0.04) == pytest.approx(0.04 / 12.92, rel=1e-12)
+    assert srgb_to_linear(1.0) == pytest.approx(1.0, rel=1e-12) and srgb_to_linear(0.0) == 0.0
+    assert srgb8_to_linear(np.array([[[128, 0, 255]]], np.uint8))[0, 0].tolist() == pytest.approx(
+        [0.21586, 0.0, 1.0], abs=1e-5
+    )
     v = np.linspace(0, 1, 101)
-    assert np.allclose(iiw.linear_to_srgb(iiw.srgb_to_linear(v)), v, atol=1e-12)
+    assert np.allclose(linear_to_srgb(srgb_to_linear(v)), v, atol=1e-12)
 
 
 def _nyu(tmp_path, n=5, H=4, W=6):

@@ -8,9 +8,8 @@ from torch import nn
 
 from pipeline.bench.scenes import BoxRoom, ssrt_rays
 from pipeline.models.light_net import LightNet, blend, confidence
-from pipeline.models.light_net.branches import ray_box, scene_bounds
 from pipeline.models.light_net.hyper import HyperMLP
-from pipeline.ops.volume import composite, stratified_edges
+from pipeline.ops.volume import composite, ray_box, scene_bounds, stratified_edges
 
 
 def test_generated_mlp_equals_an_ordinary_mlp_with_the_same_weights():
@@ -19,7 +18,7 @@ def test_generated_mlp_equals_an_ordinary_mlp_with_the_same_weights():
     params = hyper(torch.randn(2, 5))
     x = torch.randn(6, 4)
     scene = torch.tensor([0, 1, 1, 0, 1, 0])
-    out = HyperMLP.apply(params, x, scene)
+    out = HyperMLP.run_generated(params, x, scene)
     for b in (0, 1):
         mlp = nn.Sequential(nn.Linear(4, 7), nn.ReLU(), nn.Linear(7, 3))
         with torch.no_grad():
@@ -45,7 +44,7 @@ def test_generated_mlp_gradients_match_a_per_point_weight_gather():
             h = h.relu() if k < len(params) - 1 else h
         return h
 
-    a = HyperMLP.apply(hyper(feature), x, scene)
+    a = HyperMLP.run_generated(hyper(feature), x, scene)
     (ga,) = torch.autograd.grad(a.square().sum(), feature)
     b = gathered(hyper(feature))
     (gb,) = torch.autograd.grad(b.square().sum(), feature)

@@ -24,7 +24,7 @@ def evaluated(micro_shards, tmp_path_factory):
         "progress=false",
     ]
     train_material.run(compose_cfg("train_material", [*common, "system_metrics=false"]))
-    ft = finetune.run(compose_cfg("finetune", [*common, "finetune.epochs=1", "finetune.batch_size=2"]))
+    ft = finetune.run(compose_cfg("finetune", [*common, "trainer.max_epochs=1", "finetune.batch_size=2"]))
     ev = evaluate.run(compose_cfg("evaluate", common))
     return tmp, ft, ev
 
@@ -44,6 +44,8 @@ def test_evaluate_reports_both_models_with_their_sources(evaluated):
     for model in ("trained", "finetuned"):
         for key in ("iiw/whdr_gamma", "nyu/normal_deg", "nyu/depth_si", "synthetic/albedo_mse"):
             assert np.isfinite(ev[f"{model}/{key}"])
+        for bench in ("iiw", "nyu", "synthetic"):  # every per-image score counted: none is non-finite here
+            assert ev[f"{model}/{bench}/nonfinite"] == 0
         for bench in ("iiw", "nyuv2", "synthetic"):
             assert (report / f"{model}_{bench}.csv").read_text().count("\n") >= 2
         assert (report / f"{model}_nyuv2_cases.png").stat().st_size > 5_000
@@ -67,6 +69,15 @@ def test_whdr_command_line(evaluated, capsys):
     Image.fromarray(np.full((8, 8, 3), 128, np.uint8)).save(gray)
     assert main(["whdr", str(gray), str(root / f"{image_id}.json")]) == 0
     value = float(capsys.readouterr().out)
-    assert 0 <= value <= 1  # a flat reflectance says "equal" everywhere: it disagrees with every "darker"
+    # a flat reflectance says "equal" everywhere: it disagrees with exactly the usable "darker" judgements
+    judgements = iiw.read_judgements(root, image_id)
+    opaque = {p["id"] for p in judgements["intrinsic_points"] if p["opaque"]}
+    usable = [
+        c
+        for c in judgements["intrinsic_comparisons"]
+        if c["darker"] in ("1", "2", "E") and (c["darker_score"] or 0) > 0 and {c["point1"], c["point2"]} <= opaque
+    ]
+    darker = sum(c["darker_score"] for c in usable if c["darker"] != "E")
+    assert value == pytest.approx(darker / sum(c["darker_score"] for c in usable), rel=1e-9)
     assert main(["whdr", str(gray), str(root / "missing.json")]) == 2
     assert "missing.json" in capsys.readouterr().err

@@ -3,7 +3,7 @@
 import numpy as np
 import torch
 
-from pipeline.systems.lighting import grid_pixels
+from pipeline.ops.camera import grid_pixels
 from pipeline.systems.lighting_figures import scatter_grid, spread_indices
 
 

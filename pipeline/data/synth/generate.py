@@ -153,7 +153,8 @@ def prepare_output(out: Path) -> None:
 def synthesize(cfg: SynthConfig, out: str | Path, seed: int, progress: bool = True) -> dict:
     """Render `cfg.scenes` rooms into `out` (InteriorVerse layout + lighting + splits).
 
-    Returns a summary: counts, the Mitsuba variant, timings (seconds) and per-scene statistics.
+    Returns a summary: counts, the Mitsuba variant, timings (seconds) and per-scene statistics; the
+    dataset's own `dataset.json` is the same without timings (`dataset_record`).
     """
     out = Path(out)
     splits = assign_splits(cfg.scenes, cfg.splits, seed)
@@ -183,5 +184,18 @@ def synthesize(cfg: SynthConfig, out: str | Path, seed: int, progress: bool = Tr
         "config": asdict(cfg),
         "seed": seed,
     }
-    (out / "dataset.json").write_text(json.dumps(summary, indent=1, default=list))
+    (out / "dataset.json").write_text(json.dumps(dataset_record(summary), indent=1, default=list))
     return summary
+
+
+# run-dependent fields of a summary: reported (reports/, MLflow), never written into the dataset, so the
+# same seed and config give byte-identical outputs (and DVC hashes) on any machine and run
+TIMING_KEYS = ("workers", "wall_seconds")
+SCENE_TIMING_KEYS = ("seconds",)
+
+
+def dataset_record(summary: dict) -> dict:
+    """`dataset.json`: the summary without timings or worker counts."""
+    record = {k: v for k, v in summary.items() if k not in TIMING_KEYS}
+    record["scenes"] = [{k: v for k, v in s.items() if k not in SCENE_TIMING_KEYS} for s in summary["scenes"]]
+    return record

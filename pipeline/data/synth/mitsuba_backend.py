@@ -45,7 +45,8 @@ def _env_with_llvm() -> dict:
 
 def choose_variant(requested: str = "auto") -> str:
     """Return the Mitsuba variant to use. `auto` probes llvm_ad_rgb in a subprocess (a failing LLVM
-    aborts rather than raising) and falls back to scalar_rgb."""
+    aborts rather than raising) and falls back to scalar_rgb, printing why (the probe's exit status and
+    the end of its stderr, or the timeout) to stderr."""
     if requested not in ("auto", *VARIANTS):
         raise ValueError(f"synth.variant={requested!r}: choose auto, llvm_ad_rgb or scalar_rgb")
     if requested != "auto":
@@ -54,10 +55,18 @@ def choose_variant(requested: str = "auto") -> str:
         out = subprocess.run(
             [sys.executable, "-c", _PROBE], env=_env_with_llvm(), capture_output=True, text=True, timeout=120
         )
+    except subprocess.TimeoutExpired:
+        why = "the llvm_ad_rgb probe render did not finish in 120 s"
+    else:
         if out.returncode == 0 and "ok" in out.stdout:
             return "llvm_ad_rgb"
-    except subprocess.TimeoutExpired:
-        pass
+        tail = (out.stderr or "").strip().splitlines()[-3:]
+        why = f"the llvm_ad_rgb probe exited with status {out.returncode}: {' | '.join(tail) or 'no stderr'}"
+    print(
+        f"synthesize: falling back to Mitsuba's scalar_rgb variant (about 2.4x slower): {why}. "
+        "llvm_ad_rgb needs libLLVM 19 (apt-get install libllvm19; DRJIT_LIBLLVM_PATH).",
+        file=sys.stderr,
+    )
     return "scalar_rgb"
 
 

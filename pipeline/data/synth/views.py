@@ -7,16 +7,14 @@ depth is z-depth in millimetres (inf on misses), normals are unit view-space vec
 from __future__ import annotations
 
 import contextlib
-import math
 import time
 from dataclasses import dataclass
 
 import numpy as np
-import torch
 
 from pipeline.data.synth import mitsuba_backend as mb
 from pipeline.data.synth.scene import Camera
-from pipeline.ops.frames import orthonormal_basis
+from pipeline.ops.envmap import hemisphere_directions, sphere_directions
 
 PROBE_OFFSET_M = 2e-3  # probe rays start this far along the normal, clear of the surface they sit on
 
@@ -55,28 +53,6 @@ def gbuffer(scene, camera: Camera, width: int, height: int) -> dict[str, np.ndar
         "mask": mask.reshape(shape).astype(np.float32),
         "t": hit["t"].reshape(shape),
     }
-
-
-def hemisphere_directions(normals: np.ndarray, rows: int, cols: int) -> np.ndarray:
-    """(P, rows, cols, 3) directions at texel centres: theta = (a+.5)/rows * pi/2 from the normal,
-    phi = (b+.5)/cols * 2 pi from the tangent towards the bitangent of `ops.frames.orthonormal_basis`."""
-    t, bt = (x.numpy() for x in orthonormal_basis(torch.from_numpy(np.asarray(normals, np.float64))))
-    theta = (np.arange(rows) + 0.5) / rows * (math.pi / 2)
-    phi = (np.arange(cols) + 0.5) / cols * (2 * math.pi)
-    st, ct = np.sin(theta)[:, None, None], np.cos(theta)[:, None, None]
-    sp, cp = np.sin(phi)[None, :, None], np.cos(phi)[None, :, None]
-    local = [st * cp, st * sp, ct * np.ones_like(cp)]  # each (rows, cols, 1)
-    return (
-        local[0][None] * t[:, None, None] + local[1][None] * bt[:, None, None] + local[2][None] * normals[:, None, None]
-    )
-
-
-def sphere_directions(rows: int, cols: int) -> np.ndarray:
-    """(rows, cols, 3) view-space directions: theta from +y (up), phi from -z (forward) towards +x."""
-    theta = (np.arange(rows) + 0.5) / rows * math.pi
-    phi = (np.arange(cols) + 0.5) / cols * (2 * math.pi)
-    th, ph = np.meshgrid(theta, phi, indexing="ij")
-    return np.stack([np.sin(th) * np.sin(ph), np.cos(th), -np.sin(th) * np.cos(ph)], -1)
 
 
 def lighting_probes(

@@ -15,9 +15,10 @@ from __future__ import annotations
 import torch
 from torch import nn
 
-from pipeline.models.light_net.branches import LocalBranch, OutOfViewBranch, image_scale, scene_bounds
+from pipeline.models.light_net.branches import LocalBranch, OutOfViewBranch, image_scale
 from pipeline.ops import ssrt
 from pipeline.ops.brdf import f0
+from pipeline.ops.volume import scene_bounds
 
 MODES = ("mixed", "ssrt_only", "out_of_view_only")
 

@@ -21,9 +21,8 @@ from torch.nn import functional as F
 
 from pipeline.models.light_net.hyper import HyperMLP
 from pipeline.models.material_net import ENCODERS, normalize_input
-from pipeline.ops.camera import backproject
 from pipeline.ops.encodings import fourier, fourier_dim
-from pipeline.ops.volume import composite, stratified_edges
+from pipeline.ops.volume import composite, ray_box, stratified_edges
 
 GBUFFER_DIM = 10  # Kd (3), Ks (3), normal (3), roughness (1)
 
@@ -138,41 +137,11 @@ class OutOfViewBranch(nn.Module):
         centre, half = (lo + hi) / 2, ((hi - lo) / 2).clamp(min=1e-3)
         local = (pts - centre[:, None]) / half[:, None]  # the box maps to [-1, 1]^3
         S = self.samples
-        out = HyperMLP.apply(params, fourier(local.reshape(-1, 3), self.frequencies), batch_index.repeat_interleave(S))
+        out = HyperMLP.run_generated(
+            params, fourier(local.reshape(-1, 3), self.frequencies), batch_index.repeat_interleave(S)
+        )
         out = out.view(-1, S, 4)
         sigma = F.softplus(out[..., 0]) * (S / (t_far - t_near).clamp(min=1e-3))[:, None]  # O(1) optical depth
         rad, _, left = composite(sigma, F.softplus(out[..., 1:]), edges)
         far = F.softplus(self.far(torch.cat([feature[batch_index], fourier(wi, self.dir_frequencies)], -1)))
         return (rad + left[:, None] * far) * scale[batch_index].unsqueeze(-1)
-
-
-def ray_box(origin: torch.Tensor, direction: torch.Tensor, lo: torch.Tensor, hi: torch.Tensor):
-    """Entry and exit distances (N,) of rays with a box (slab method), clamped to t >= 0; rays that miss
-    get an empty interval at 0."""
-    inv = 1.0 / torch.where(direction.abs() > 1e-9, direction, torch.full_like(direction, 1e-9))
-    t0, t1 = (lo - origin) * inv, (hi - origin) * inv
-    t_near = torch.minimum(t0, t1).amax(-1).clamp(min=0)
-    t_far = torch.maximum(t0, t1).amin(-1)
-    t_far = torch.maximum(t_far, t_near)
-    return t_near, t_far
-
-
-def backproject_views(depth: torch.Tensor, fov_x) -> torch.Tensor:
-    """backproject for a batch whose views may differ in FOV: depth (B, H, W), fov_x float or (B,) degrees
-    -> (B, H, W, 3)."""
-    if not torch.is_tensor(fov_x) or fov_x.ndim == 0:
-        return backproject(depth, float(fov_x))
-    return torch.stack([backproject(depth[b : b + 1], float(fov_x[b]))[0] for b in range(depth.shape[0])])
-
-
-def scene_bounds(depth: torch.Tensor, fov_x, margin: float = 0.1) -> torch.Tensor:
-    """(B, H, W) z-depth (0 / non-finite = none), fov_x float or (B,) -> (B, 2, 3) view-space box of the
-    visible surfaces and the camera, grown by `margin` of its size (the out-of-view scene is assumed to
-    lie around them)."""
-    pts = backproject_views(torch.where(torch.isfinite(depth), depth, torch.zeros_like(depth)), fov_x)
-    valid = (torch.isfinite(depth) & (depth > 0)).unsqueeze(-1)
-    big = torch.finfo(depth.dtype).max
-    lo = torch.where(valid, pts, torch.full_like(pts, big)).flatten(1, 2).amin(1).clamp(max=0)
-    hi = torch.where(valid, pts, torch.full_like(pts, -big)).flatten(1, 2).amax(1).clamp(min=0)
-    pad = (hi - lo) * margin + 1e-2
-    return torch.stack([lo - pad, hi + pad], 1)

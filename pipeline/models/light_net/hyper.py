@@ -43,7 +43,9 @@ class HyperMLP(nn.Module):
         return params
 
     @staticmethod
-    def apply(params: list[tuple[torch.Tensor, torch.Tensor]], x: torch.Tensor, scene: torch.Tensor) -> torch.Tensor:
+    def run_generated(
+        params: list[tuple[torch.Tensor, torch.Tensor]], x: torch.Tensor, scene: torch.Tensor
+    ) -> torch.Tensor:
         """Run the generated MLP of scene[i] on x[i]: x (N, in), scene (N,) long -> (N, out).
 
         Points are grouped by scene and each group goes through its scene's layers as one dense matrix

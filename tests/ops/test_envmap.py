@@ -5,9 +5,8 @@ import math
 import numpy as np
 import torch
 
-from pipeline.data.synth.views import hemisphere_directions
+from pipeline.ops.envmap import hemisphere_directions, hemisphere_lookup
 from pipeline.ops.frames import orthonormal_basis
-from pipeline.systems.lighting_stage import hemisphere_lookup
 
 
 def _probes(normals: np.ndarray, rows: int, cols: int, field):

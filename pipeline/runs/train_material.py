@@ -1,4 +1,4 @@
-"""Stage `train_material`: config -> MaterialNet training -> test metrics, baselines, gate, export.
+"""Stage `train_material`: MaterialNet training -> test metrics, trivial baselines, gate, export.
 
 Writes under `out_dir`: checkpoints/best.ckpt and last.ckpt (Lightning), model.pt (the best weights with
 the network config, for `invrender predict`); under `report_dir`: metrics.json and test_maps.png.
@@ -15,12 +15,12 @@ from omegaconf import DictConfig, OmegaConf
 from pipeline.data.datamodules import InteriorVerseDataModule
 from pipeline.data.datasets import read_manifest
 from pipeline.metrics.synthetic import depth_mask, ls_scale
+from pipeline.models.export import save_material_export
 from pipeline.models.material_net import parameter_count
 from pipeline.systems.material import METRICS, MaterialSystem
 from pipeline.systems.material_baselines import MaterialBaselines, accuracy_gate
-from pipeline.systems.material_predict import save_material_model
 from pipeline.systems.trainer import stage_trainer
-from pipeline.tracking import stage_run, write_metrics
+from pipeline.tracking import publish, stage_run
 from pipeline.tracking.figures import map_comparison
 
 
@@ -75,7 +75,7 @@ def build_datamodule(cfg: DictConfig) -> InteriorVerseDataModule:
     )
 
 
-def run_train_material(cfg: DictConfig) -> dict[str, float]:
+def run(cfg: DictConfig) -> dict[str, float]:
     import lightning as L
     import mlflow
     from lightning.pytorch.callbacks import ModelCheckpoint
@@ -122,13 +122,11 @@ def run_train_material(cfg: DictConfig) -> dict[str, float]:
             metrics["best_val_loss"] = float(ckpt.best_model_score)
         depth_scale = median_depth_scale(system, dm.plain_loader("val"))
         size = (dm.splits["train"].height, dm.splits["train"].width)
-        model_path = save_material_model(out / "model.pt", system.hparams["model"], system.net, size, depth_scale)
+        model_path = save_material_export(out / "model.pt", system.hparams["model"], system.net, size, depth_scale)
         metrics["depth_scale"] = depth_scale
-        write_metrics(report / "metrics.json", metrics)
-        mlflow.log_metrics({k.replace("/", "."): v for k, v in metrics.items()})
+        publish(report, metrics)
         figure = _test_figure(system, dm, report / "test_maps.png", int(cfg.figure_views))
         mlflow.log_artifact(str(figure), "figures")
-        mlflow.log_artifact(str(report / "metrics.json"))
         mlflow.set_tag("model_path", str(model_path.resolve()))
     return metrics
 

@@ -1,0 +1,101 @@
+"""Stage `train_lighting`: LightNet trained with the HDR light loss and the MC re-rendering loss, scored
+on the test split beside content-blind baselines and oracles (`systems.lighting_baselines`).
+
+Writes under `out_dir`: checkpoints/best.ckpt and last.ckpt (Lightning), model.pt (the LightNet export
+with the best validated weights); under `report_dir`: metrics.json, rerender.png, envmaps.png.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import torch
+from hydra.utils import instantiate
+from omegaconf import DictConfig, OmegaConf
+
+from pipeline.data.datamodules import InteriorVerseDataModule
+from pipeline.data.datasets import read_manifest
+from pipeline.models.export import load_material_export, save_light_export
+from pipeline.systems.lighting import LightingSystem
+from pipeline.systems.lighting_baselines import mean_training_radiance
+from pipeline.systems.lighting_figures import lighting_figures
+from pipeline.systems.trainer import stage_trainer
+from pipeline.tracking import publish, stage_run
+
+
+def build_system(cfg: DictConfig) -> LightingSystem:
+    material = None
+    if cfg.gbuffers == "predicted":
+        _, material = load_material_export(cfg.material_path)
+    sched = OmegaConf.select(cfg, "optim.scheduler")
+    lt = cfg.lighting
+    return LightingSystem(
+        light_net=OmegaConf.to_container(cfg.model.light_net, resolve=True),
+        material=material,
+        render=OmegaConf.to_container(cfg.render, resolve=True),
+        gbuffers=str(cfg.gbuffers),
+        pixels=int(lt.pixels),
+        probes=int(lt.probes),
+        texels=int(lt.texels),
+        free_probes=int(lt.free_probes),
+        render_weight=float(lt.render_weight),
+        eval_stride=int(lt.eval_stride),
+        optimizer=instantiate(cfg.optim.optimizer),
+        scheduler=instantiate(sched) if sched is not None else None,
+        seed=int(cfg.seed),
+    )
+
+
+def run(cfg: DictConfig) -> dict[str, float]:
+    import lightning as L
+    import mlflow
+    from lightning.pytorch.callbacks import ModelCheckpoint
+
+    L.seed_everything(int(cfg.seed), workers=True, verbose=False)
+    system = build_system(cfg)
+    dm = InteriorVerseDataModule(cfg.data_dir, batch_size=int(cfg.batch_size), seed=int(cfg.seed), lighting=True)
+    dm.setup("fit")
+    dm.setup("test")
+    constants = mean_training_radiance(dm.plain_loader("train"))
+    out, report = Path(cfg.out_dir), Path(cfg.report_dir)
+    source = read_manifest(cfg.data_dir).get("source", "unspecified")
+    mode = str(cfg.model.light_net.mode)
+    tags = {"data_source": source, "mode": mode, "render": str(cfg.render.estimator)}
+    with stage_run("train_lighting", cfg, tags=tags) as run:
+        ckpt = ModelCheckpoint(
+            dirpath=out / "checkpoints", filename="best", monitor="val/render_psnr", mode="max", save_last=True
+        )
+        trainer = stage_trainer(run, OmegaConf.to_container(cfg.trainer, resolve=True), out, [ckpt], bool(cfg.progress))
+        # the first validation pass (before any training step) records the starting re-render PSNR
+        start = trainer.validate(system, datamodule=dm, verbose=False)[0]
+        trainer.fit(system, datamodule=dm)
+        if system.validated_at_step == trainer.global_step:  # the last epoch was validated: same weights
+            last = float(trainer.callback_metrics["val/render_psnr"])
+        else:
+            last = float(trainer.validate(system, datamodule=dm, verbose=False)[0]["val/render_psnr"])
+        # model selection on validation: the light loss's rare huge terms make late steps jumpy, so the
+        # test split, the baselines' model row and model.pt use the best validated weights
+        chosen, after = "last", last
+        if ckpt.best_model_path and ckpt.best_model_score is not None and float(ckpt.best_model_score) > last:
+            best = torch.load(ckpt.best_model_path, map_location="cpu", weights_only=True)
+            system.load_state_dict(best["state_dict"])
+            chosen, after = f"best (epoch {best['epoch']})", float(ckpt.best_model_score)
+        mlflow.set_tag("test_weights", chosen)
+        system.baselines = constants
+        trainer.test(system, datamodule=dm, verbose=False)
+        logged = {
+            k.removeprefix("test/"): float(v) for k, v in trainer.callback_metrics.items() if k.startswith("test/")
+        }
+        metrics = {f"{mode}/test/{k}": v for k, v in logged.items() if "/" not in k}
+        metrics.update({f"baseline/{k}": v for k, v in logged.items() if "/" in k})
+        metrics[f"{mode}/val/render_psnr_before_training"] = float(start["val/render_psnr"])
+        metrics[f"{mode}/val/render_psnr_after_training"] = after
+        metrics[f"{mode}/val/render_psnr_last_epoch"] = last
+        metrics["global_step"] = float(trainer.global_step)
+        save_light_export(out / "model.pt", system.hparams["light_net"], system.net)
+        publish(report, metrics)
+        if int(cfg.lighting.figure_views) > 0:
+            batch = next(iter(dm.plain_loader("test", batch_size=int(cfg.lighting.figure_views))))
+            for figure in lighting_figures(system, batch, constants, report):
+                mlflow.log_artifact(str(figure), "figures")
+    return metrics

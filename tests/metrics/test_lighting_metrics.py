@@ -1,0 +1,142 @@
+"""Lighting metrics, the HDR light loss and the lighting baselines on hand-computed cases."""
+
+import math
+
+import torch
+
+from pipeline.data.lighting import Probes, ViewLighting
+from pipeline.metrics.image import psnr_tonemapped
+from pipeline.metrics.lighting import log_l1, normalised_mse, ray_classes, relmse
+
+
+def test_relmse_by_hand_and_exposure_invariant():
+    target = torch.tensor([[1.0, 1.0, 1.0], [0.0, 0.0, 0.0]])
+    pred = torch.tensor([[2.0, 2.0, 2.0], [0.1, 0.1, 0.1]])
+    scale = torch.tensor([1.0, 1.0])
+    # texel 1: (2 - 1)^2 / (1 + 0.01); texel 2: 0.1^2 / 0.01 = 1
+    expect = (1 / 1.01 + 1.0) / 2
+    assert math.isclose(float(relmse(pred, target, scale)), expect, rel_tol=1e-6)
+    for k in (1e-3, 37.0):  # the same scene at another exposure scores the same
+        assert math.isclose(float(relmse(pred * k, target * k, scale * k)), expect, rel_tol=1e-5)
+    assert float(relmse(target, target, scale)) == 0.0
+    # a zero prediction scores at most 1 per texel, an over-estimate without bound: relMSE favours dark
+    assert float(relmse(torch.zeros_like(target), target, scale)) <= 1.0
+    assert float(relmse(target * 10 + 1, target, scale)) > 50.0
+
+
+def test_nmse_is_error_energy_over_light_energy():
+    target = torch.tensor([[3.0, 0.0, 4.0]])
+    assert math.isclose(float(normalised_mse(torch.zeros_like(target), target)), 1.0)
+    assert math.isclose(float(normalised_mse(target * 0.5, target)), 0.25, rel_tol=1e-6)
+
+
+def test_log_l1_and_psnr_by_hand():
+    scale = torch.tensor([1.0])
+    # |log(1 + 3) - log(1 + 1)| = log 2 in every channel
+    assert math.isclose(float(log_l1(torch.full((1, 3), 3.0), torch.ones(1, 3), scale)), math.log(2), rel_tol=1e-6)
+    # tone map x / 2 then x / (1 + x): 2 -> 0.5, 0 -> 0; MSE 0.25 -> PSNR 10 log10(4)
+    psnr = float(psnr_tonemapped(torch.full((1, 3), 2.0), torch.zeros(1, 3), scale))
+    assert math.isclose(psnr, 10 * math.log10(4), rel_tol=1e-6)
+
+
+def test_log_l1_and_psnr_are_exposure_invariant():
+    g = torch.Generator().manual_seed(0)
+    target = torch.rand(50, 3, generator=g) * 4
+    pred = target * (0.5 + torch.rand(50, 3, generator=g))
+    scale = torch.full((50,), 0.7)
+    for k in (0.01, 100.0):
+        assert math.isclose(
+            float(log_l1(pred * k, target * k, scale * k)), float(log_l1(pred, target, scale)), rel_tol=1e-5
+        )
+        a, b = float(psnr_tonemapped(pred * k, target * k, scale * k)), float(psnr_tonemapped(pred, target, scale))
+        assert math.isclose(a, b, rel_tol=1e-5)
+
+
+def test_relative_mse_loss_is_exposure_invariant_and_stationary_at_the_mean():
+    from pipeline.systems.losses import hdr_relative_loss as relative_mse
+
+    g = torch.Generator().manual_seed(0)
+    target = torch.rand(64, 3, generator=g, dtype=torch.float64) ** 4 * 10
+    pred = torch.rand(64, 3, generator=g, dtype=torch.float64)
+    scale = torch.full((64,), 0.3, dtype=torch.float64)
+    a = relative_mse(pred, target, scale=scale)
+    assert torch.allclose(relative_mse(pred * 7, target * 7, scale=scale * 7), a)
+    # stop-gradient denominator: one shared prediction settles at the targets' mean, not a smaller value
+    c = torch.full((64, 3), float(target.mean()), dtype=torch.float64, requires_grad=True)
+    relative_mse(c, target.expand(64, 3).contiguous(), scale=scale).backward()
+    assert abs(float(c.grad.sum())) < 1e-9
+
+
+def test_mean_training_radiance_and_its_exposure_ratio():
+    from pipeline.systems.lighting_baselines import mean_training_radiance
+
+    im = torch.ones(2, 3, 4, 4)
+    im[1] *= 4.0  # image means 1 and 4
+    light = [_view(torch.full((1, 2, 2, 3), v), torch.full((1, 1, 2, 3), v)) for v in (2.0, 8.0)]
+    c = mean_training_radiance([{"im": im, "light": light}])
+    assert torch.allclose(c.constant, torch.full((3,), 5.0))  # (6 texels x 2 + 6 x 8) / 12
+    assert torch.allclose(c.ratio, torch.full((3,), 2.0))  # every texel is twice its image's mean
+
+
+def test_ray_classes_partition_every_ray_by_hit_and_confidence():
+    hit = torch.tensor([True, True, True, False, False])
+    u = torch.tensor([0.0, 0.49, 0.5, 1.0, 0.2])
+    masks = ray_classes(hit, u)
+    assert masks["hit"].tolist() == [True, True, False, False, False]
+    assert masks["uncertain"].tolist() == [False, False, True, False, False]
+    assert masks["miss"].tolist() == [False, False, False, True, True]
+    assert (sum(m.long() for m in masks.values()) == 1).all()
+
+
+def test_probe_oracles_predict_each_probes_own_mean_and_median():
+    from pipeline.systems.lighting_baselines import probe_oracle_light
+
+    texels = torch.tensor([1.0, 2.0, 3.0, 10.0])  # one probe of 2 x 2 texels, grey
+    empty = torch.zeros(0, 2, 2, 3)
+    lights = [
+        _view(texels.view(1, 2, 2, 1).expand(1, 2, 2, 3), empty),
+        _view(empty, empty),  # a view without probes adds nothing
+    ]
+    out = probe_oracle_light(lights, "surf", torch.tensor([2.0, 5.0]))
+    pred, target, scale = out["probe_mean_oracle"]
+    torch.testing.assert_close(pred, torch.full((4, 3), 4.0))
+    torch.testing.assert_close(target[:, 0], texels)
+    torch.testing.assert_close(scale, torch.full((4,), 2.0))
+    torch.testing.assert_close(out["probe_median_oracle"][0], torch.full((4, 3), 2.0))  # the lower median
+    assert probe_oracle_light(lights[1:], "surf", torch.tensor([5.0])) is None
+
+
+def _view(surf_radiance: torch.Tensor, free_radiance: torch.Tensor) -> ViewLighting:
+    """A ViewLighting holding only radiance (directions and positions zero: unused by these tests)."""
+    P, Q = len(surf_radiance), len(free_radiance)
+    surf = Probes(
+        torch.zeros(P, 3),
+        torch.zeros_like(surf_radiance),
+        surf_radiance,
+        torch.zeros(P, 3),
+        torch.zeros(P, 2, dtype=torch.long),
+    )
+    return ViewLighting(surf, Probes(torch.zeros(Q, 3), torch.zeros_like(free_radiance), free_radiance))
+
+
+def test_probe_rays_take_every_texel_in_order_or_a_seeded_sample():
+    from pipeline.data.lighting import probe_rays
+
+    rad = torch.arange(2 * 2 * 2 * 3, dtype=torch.float32).view(2, 2, 2, 3)  # 2 probes of 2 x 2 texels
+    surf = Probes(
+        torch.tensor([[0.0, 0, -1], [1, 0, -1]]),
+        torch.zeros(2, 2, 2, 3),
+        rad,
+        torch.tensor([[0.0, 0, 1], [0, 0, 1]]),
+        torch.tensor([[3, 4], [5, 6]]),
+    )
+    light = ViewLighting(surf, Probes(torch.zeros(0, 3), torch.zeros(0, 2, 2, 3), torch.zeros(0, 2, 2, 3)))
+    rays = probe_rays([light, light], "surf")
+    assert len(rays) == 16 and rays.image.tolist() == [0] * 8 + [1] * 8
+    torch.testing.assert_close(rays.radiance[:8], rad.reshape(8, 3))
+    torch.testing.assert_close(rays.origin[0], torch.tensor([0.0, 0.0, -1.0 + 1e-3]))  # lifted off the surface
+    assert rays.pixel[4].tolist() == [5, 6]
+    assert probe_rays([light], "free") is None
+    a = probe_rays([light], "surf", 1, 2, torch.Generator().manual_seed(3))
+    b = probe_rays([light], "surf", 1, 2, torch.Generator().manual_seed(3))
+    assert len(a) == 2 and torch.equal(a.radiance, b.radiance)
