@@ -143,7 +143,7 @@ def run(cfg: DictConfig) -> dict[str, float]:
         mlflow.log_params({"iiw_source": sources["iiw"], "nyuv2_source": sources["nyuv2"]})
         for name, path in cfg.models.items():
             net, meta = load_material_export(path)
-            system = BenchmarkEvaluation(net, meta)
+            system = BenchmarkEvaluation(net, meta, name)
             trainer = stage_trainer(
                 run, {"accelerator": "cpu", "devices": 1, "deterministic": True}, report, (), bool(cfg.progress)
             )

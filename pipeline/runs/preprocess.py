@@ -1,5 +1,6 @@
 """Stage `preprocess`: validates every view of an InteriorVerse-layout root, resizes (mask-aware area
-filter) and writes shards + manifest -> outputs/preprocess; counts -> reports/preprocess and MLflow."""
+filter) and writes shards + manifest -> outputs/preprocess; counts -> reports/preprocess/metrics.json,
+its duration -> reports/preprocess/timings.json, both to MLflow."""
 
 from __future__ import annotations
 
@@ -42,10 +43,9 @@ def run(cfg: DictConfig) -> dict[str, float]:
             "views_rejected": result.manifest["rejected_views"],
             "pixels_masked_as_inconsistent": result.manifest["fixed_pixels"],
             "lighting_available": int(result.manifest["lighting"]),
-            "seconds": result.seconds,
             **{f"{k}_views": len(v["views"]) for k, v in splits.items()},
             **{f"{k}_scenes": len(v["scenes"]) for k, v in splits.items()},
         }
-        publish(report, metrics, (report / "rejected.json",))
+        publish(report, metrics, (report / "rejected.json",), timings={"seconds": result.seconds})
         mlflow.log_artifact(str(Path(cfg.out_dir) / "manifest.json"))
-    return metrics
+    return {**metrics, "seconds": result.seconds}

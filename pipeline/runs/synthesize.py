@@ -1,5 +1,6 @@
 """Stage `synthesize`: procedural rooms rendered with Mitsuba 3 into the InteriorVerse layout with lighting
-ground truth -> outputs/synthesize; counts and timings -> reports/synthesize and MLflow."""
+ground truth -> outputs/synthesize; counts -> reports/synthesize/metrics.json (DVC), timings ->
+reports/synthesize/timings.json, both to MLflow."""
 
 from __future__ import annotations
 
@@ -15,15 +16,19 @@ from pipeline.tracking import publish, stage_run
 PHASES = ("build", "camera", "gbuffer", "render", "lighting", "write")
 
 
-def synthesize_metrics(summary: dict) -> dict[str, float]:
-    """Counts and timings of a `synthesize` summary, flat for DVC/MLflow."""
+def synthesize_metrics(summary: dict) -> tuple[dict[str, float], dict[str, float]]:
+    """(counts, timings) of a `synthesize` summary, flat for DVC/MLflow: the counts depend only on seed
+    and config, the timings on the machine and the run."""
     scenes = summary["scenes"]
     views = sum(len(s["valid_fraction"]) for s in scenes)
+    timings = {
+        "wall_seconds": summary["wall_seconds"],
+        "wall_seconds_per_view": summary["wall_seconds"] / max(views, 1),
+        "workers": summary["workers"],
+    }
     metrics = {
         "scenes": len(scenes),
         "views": views,
-        "wall_seconds": summary["wall_seconds"],
-        "wall_seconds_per_view": summary["wall_seconds"] / max(views, 1),
         "camera_redraws": sum(s["redraws"] for s in scenes),
         "valid_pixel_fraction": float(np.mean([f for s in scenes for f in s["valid_fraction"]])),
         "surface_probes": sum(s["surface_probes"] for s in scenes),
@@ -33,8 +38,8 @@ def synthesize_metrics(summary: dict) -> dict[str, float]:
         **{f"split_{k}_scenes": v for k, v in summary["splits"].items()},
     }
     for phase in PHASES:  # worker CPU-side seconds per view, summed over workers
-        metrics[f"{phase}_seconds_per_view"] = sum(s["seconds"].get(phase, 0.0) for s in scenes) / max(views, 1)
-    return metrics
+        timings[f"{phase}_seconds_per_view"] = sum(s["seconds"].get(phase, 0.0) for s in scenes) / max(views, 1)
+    return metrics, timings
 
 
 def run(cfg: DictConfig) -> dict[str, float]:
@@ -44,13 +49,13 @@ def run(cfg: DictConfig) -> dict[str, float]:
     report = Path(cfg.report_dir)
     with stage_run("synthesize", cfg, tags={"data_source": "synthetic"}):
         summary = synthesize(synth_cfg, cfg.out_dir, int(cfg.seed), progress=bool(cfg.progress))
-        metrics = synthesize_metrics(summary)
+        metrics, timings = synthesize_metrics(summary)
         mlflow.set_tag("mitsuba_variant", summary["variant"])
         first_views = [
             (s, f"{v:03d}") for v in range(synth_cfg.views) for s in sorted(r["scene"] for r in summary["scenes"])
         ]
         sheet = contact_sheet(cfg.out_dir, first_views[: int(cfg.contact_sheet_views)], report / "samples.png")
-        publish(report, metrics)
+        publish(report, metrics, timings=timings)
         mlflow.log_artifact(str(sheet), "figures")
         mlflow.log_artifact(str(Path(cfg.out_dir) / "dataset.json"))
-    return metrics
+    return {**metrics, **timings}

@@ -6,7 +6,8 @@ DESIGN.md section 6 score one image at a time:
   nyuv2      {"index", "photo", "depth" (H, W) m, "normal" (H, W, 3), "valid" (H, W)}: normal angle, si-RMSE,
              median-scaled depth errors, and the angles for the pooled statistics
   synthetic  a `ShardDataset` item: the synthetic-test map errors
-Per-image rows are kept in `rows[benchmark]` (written as CSV by the stage) and logged per benchmark.
+Per-image rows are kept in `rows[benchmark]` (written as CSV by the stage); their means are logged per
+model and benchmark.
 """
 
 from __future__ import annotations
@@ -83,11 +84,13 @@ def test_loaders(iiw_root, nyu_root, data_dir) -> list[DataLoader]:
 
 
 class BenchmarkEvaluation(L.LightningModule):
-    """net: a MaterialNet export's network; meta: the export (input_size, depth_scale)."""
+    """net: a MaterialNet export's network; meta: the export (input_size, depth_scale); name: the model's
+    name in the stage (`trained`, `finetuned`), the prefix of what it logs (`test/<name>/<bench>/<score>`),
+    so two models scored in one MLflow run do not write the same metric."""
 
-    def __init__(self, net: MaterialNet, meta: dict):
+    def __init__(self, net: MaterialNet, meta: dict, name: str = "model"):
         super().__init__()
-        self.net, self.meta = net.eval(), meta
+        self.net, self.meta, self.name = net.eval(), meta, name
         self.rows: dict[str, list[dict]] = {b: [] for b in BENCHMARKS}
         self.pooled_angles: list[np.ndarray] = []
 
@@ -98,7 +101,7 @@ class BenchmarkEvaluation(L.LightningModule):
         self.rows[bench].append(row)
         for k, v in row.items():
             if k not in ("id", "index"):
-                self.log(f"test/{bench}/{k}", float(v), batch_size=1, add_dataloader_idx=False)
+                self.log(f"test/{self.name}/{bench}/{k}", float(v), batch_size=1, add_dataloader_idx=False)
 
     def _score_iiw(self, item) -> dict:
         albedo = predict_maps(self.net, self.meta, srgb8_to_linear(item["photo"]))["albedo"]

@@ -13,7 +13,9 @@ pytestmark = pytest.mark.slow
 def test_synthesize_stage_reports_and_tracks(micro_stage_paths):
     reports = micro_stage_paths["reports"] / "synthesize"
     metrics = json.loads((reports / "metrics.json").read_text())
-    assert metrics == pytest.approx(micro_stage_paths["metrics"])
+    timings = json.loads((reports / "timings.json").read_text())
+    assert {**metrics, **timings} == pytest.approx(micro_stage_paths["metrics"])
+    assert "wall_seconds" in timings and not any("seconds" in k for k in metrics)  # dvc.lock holds no timing
     assert metrics["scenes"] == 3 and metrics["views"] == 6 and metrics["split_train_scenes"] == 1
     assert metrics["surface_probes"] > 0 and metrics["free_probes"] == 12
     assert (reports / "samples.png").stat().st_size > 10_000
