@@ -58,8 +58,7 @@ def predict_files(inputs: list[str | Path], out: str | Path, checkpoint: str | P
 
     from pipeline.data.formats.exr import write_exr
     from pipeline.data.formats.photo import PhotoError, read_linear
-    from pipeline.models.export import load_material_export
-    from pipeline.models.material_net import predict_maps
+    from pipeline.models.material_net import load_material_export, predict_maps
     from pipeline.tracking.figures import prediction_sheet
 
     net, meta = load_material_export(checkpoint)

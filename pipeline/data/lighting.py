@@ -112,15 +112,16 @@ def probe_rays(
             ti = torch.arange(T).expand(len(pi), T)
         else:
             ti = torch.stack([torch.randperm(T, generator=generator)[:texels] for _ in range(len(pi))])
+        pi, ti = pi.to(d.device), ti.to(d.device)  # random numbers from the (CPU) generator, indices where the data is
         n_t = ti.shape[1]
         gather = ti[..., None].expand(-1, -1, 3)
-        px = pr.pixel[pi] if pr.pixel is not None else torch.full((len(pi), 2), -1, dtype=torch.long)
+        px = pr.pixel[pi] if pr.pixel is not None else torch.full((len(pi), 2), -1, dtype=torch.long, device=d.device)
         parts.append(
             ProbeRays(
                 origin=pr.origins()[pi].repeat_interleave(n_t, 0),
                 direction=torch.gather(d[pi], 1, gather).flatten(0, 1),
                 radiance=torch.gather(r[pi], 1, gather).flatten(0, 1),
-                image=torch.full((len(pi) * n_t,), b, dtype=torch.long),
+                image=torch.full((len(pi) * n_t,), b, dtype=torch.long, device=d.device),
                 pixel=px.repeat_interleave(n_t, 0),
             )
         )

@@ -151,10 +151,13 @@ def benchmark_roots(
     points: int = 40,
     comparisons: int = 60,
     nyu_test_every: int = 3,
+    build: bool = True,
 ) -> dict[str, tuple[Path, str]]:
     """{"iiw": (root, source), "nyuv2": (root, source)}: the real roots where given (checked to exist),
     otherwise stand-ins under `standin_dir` built from the synthetic test views. Stand-ins are reused only
-    when `done.json` records the same views, seed and settings; otherwise they are rebuilt."""
+    when `done.json` records the same views, seed and settings; otherwise they are rebuilt, or, with
+    build=False (a reader such as `evaluate`, which must not rewrite another stage's output), refused
+    with an error saying what differs."""
     out = {}
     standin = Path(standin_dir)
     for key, real, source in (("iiw", iiw_root, IIW_SOURCE), ("nyuv2", nyuv2_root, NYU_SOURCE)):
@@ -179,6 +182,12 @@ def benchmark_roots(
         built = json.loads(done.read_text()) if done.is_file() else None
     except json.JSONDecodeError:
         built = None  # a torn write: rebuild
+    if built != record and not build:
+        differs = sorted(k for k in record if (built or {}).get(k) != record[k]) if built else ["(none built)"]
+        raise ValueError(
+            f"{done}: the stand-ins were built with other settings ({', '.join(differs)} differ); "
+            "re-run `finetune` with these settings (dvc repro finetune)"
+        )
     if built != record:
         for key in ("iiw", "nyuv2"):  # no file of an older build may survive into the new one
             shutil.rmtree(standin / key, ignore_errors=True)

@@ -5,7 +5,9 @@ constructor arguments, its state dict and what inference needs besides weights. 
 also carries the training resolution `input_size` (h, w) and `depth_scale`, the factor that turns its
 scale-free depth into metres (calibrated on validation views). An export that lacks a field is refused
 with an error naming it: there is no silent default (a depth written at scale 1.0 and labelled
-millimetres would be wrong by orders of magnitude).
+millimetres would be wrong by orders of magnitude). The loaders sit beside their networks
+(`material_net.load_material_export`, `light_net.load_light_export`), so loading one network does not
+import the other.
 """
 
 from __future__ import annotations
@@ -79,26 +81,11 @@ def read_export(path: str | Path, fmt: str) -> dict:
     return blob
 
 
-def _build(path, cls, kwargs: dict, state: dict) -> nn.Module:
+def build_from_export(path, cls, kwargs: dict, state: dict) -> nn.Module:
+    """cls(**kwargs) with `state` loaded, in eval mode; a mismatch is refused naming the file."""
     try:
         net = cls(**kwargs)
         net.load_state_dict(state)
     except (TypeError, ValueError, RuntimeError, KeyError) as exc:
         raise ExportError(f"{path}: incompatible with {cls.__name__} ({exc})") from exc
     return net.eval()
-
-
-def load_material_export(path: str | Path):
-    """(MaterialNet in eval mode, export dict: model, input_size, depth_scale, ...)."""
-    from pipeline.models.material_net import MaterialNet
-
-    blob = read_export(path, MATERIAL_FORMAT)
-    return _build(path, MaterialNet, blob["model"], blob["state_dict"]), blob
-
-
-def load_light_export(path: str | Path):
-    """(LightNet in eval mode, export dict: light_net, ...)."""
-    from pipeline.models.light_net import LightNet
-
-    blob = read_export(path, LIGHT_FORMAT)
-    return _build(path, LightNet, blob["light_net"], blob["state_dict"]), blob

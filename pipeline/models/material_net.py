@@ -204,3 +204,12 @@ def predict_maps(
         "depth": (depth_m * 1000.0).numpy(),
         "material": torch.cat([material, torch.zeros_like(material[..., :1])], -1).numpy(),
     }
+
+
+def load_material_export(path) -> tuple[MaterialNet, dict]:
+    """(MaterialNet in eval mode, export dict: model, input_size, depth_scale, ...) of a `models.export`
+    MaterialNet export."""
+    from pipeline.models.export import MATERIAL_FORMAT, build_from_export, read_export
+
+    blob = read_export(path, MATERIAL_FORMAT)
+    return build_from_export(path, MaterialNet, blob["model"], blob["state_dict"]), blob

@@ -18,10 +18,9 @@ import numpy as np
 from omegaconf import DictConfig
 
 from pipeline.data.formats.photo import srgb8_to_linear
+from pipeline.data.standins import benchmark_roots
 from pipeline.metrics import normal as normal_metrics
-from pipeline.models.export import load_material_export
-from pipeline.models.material_net import predict_maps
-from pipeline.runs.finetune import roots
+from pipeline.models.material_net import load_material_export, predict_maps
 from pipeline.systems.evaluation import BenchmarkEvaluation, NYUTest, test_loaders
 from pipeline.systems.trainer import stage_trainer
 from pipeline.tracking import publish, stage_run
@@ -135,7 +134,18 @@ def case_panels(net, meta, nyu: NYUTest, rows: list[dict], key: str, k: int) -> 
 def run(cfg: DictConfig) -> dict[str, float]:
     import mlflow
 
-    bench = roots(cfg)
+    s = cfg.standin  # the same settings as finetune's (conf/standin); a mismatch is refused, never rebuilt
+    bench = benchmark_roots(
+        cfg.iiw_root,
+        cfg.nyuv2_root,
+        cfg.standin_dir,
+        cfg.data_dir,
+        int(cfg.seed),
+        s.points,
+        s.comparisons,
+        s.nyu_test_every,
+        build=False,
+    )
     sources = {"iiw": bench["iiw"][1], "nyuv2": bench["nyuv2"][1]}
     report = Path(cfg.report_dir)
     results, metrics = {}, {}

@@ -21,7 +21,8 @@ from pipeline.data.benchmarks import IIWSet, NYUSet, collate_iiw, collate_nyu
 from pipeline.data.datamodules import InteriorVerseDataModule
 from pipeline.data.datasets import read_manifest
 from pipeline.data.standins import benchmark_roots
-from pipeline.models.export import load_material_export, save_material_export
+from pipeline.models.export import save_material_export
+from pipeline.models.material_net import load_material_export
 from pipeline.systems.finetune import FinetuneSystem
 from pipeline.systems.trainer import stage_trainer
 from pipeline.tracking import publish, stage_run

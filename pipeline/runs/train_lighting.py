@@ -15,7 +15,8 @@ from omegaconf import DictConfig, OmegaConf
 
 from pipeline.data.datamodules import InteriorVerseDataModule
 from pipeline.data.datasets import read_manifest
-from pipeline.models.export import load_material_export, save_light_export
+from pipeline.models.export import save_light_export
+from pipeline.models.material_net import load_material_export
 from pipeline.systems.lighting import LightingSystem
 from pipeline.systems.lighting_baselines import mean_training_radiance
 from pipeline.systems.lighting_figures import lighting_figures

@@ -199,6 +199,7 @@ class LightingSystem(L.LightningModule):
                     out[f"{kind}_light_relmse_{name}"] = errs["light_relmse"]
                     out[f"{kind}_light_log_l1_{name}"] = errs["light_log_l1"]
         pix = grid_pixels(batch["mask"][:, 0], self.eval_stride)
+        gen = self.eval_generator()  # afresh: the re-render draws the directions every baseline draws
         rgb, b = self.eval_layer.render_pixels(gb, fov, pix, self.light_fn(ctx, gb, fov, gen), gen)
         target = batch["im"].permute(0, 2, 3, 1).reshape(-1, 3)[pix]
         out["render_psnr"] = float(psnr_tonemapped(rgb, target, ctx["scale"][b]))

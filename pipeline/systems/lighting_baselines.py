@@ -35,6 +35,9 @@ class Constants:
     constant: torch.Tensor
     ratio: torch.Tensor
 
+    def to(self, device) -> Constants:
+        return Constants(self.constant.to(device), self.ratio.to(device))
+
 
 def mean_training_radiance(loader) -> Constants:
     """Both constants over every probe texel of the training split (a loader of collated batches)."""
@@ -76,6 +79,7 @@ def baseline_metrics(batch: dict, constants: Constants, system) -> dict[str, flo
     renders use the system's evaluation layer and generator seed, so each draws the model's directions."""
     fov = system.fov(batch)
     scale = image_scale(batch["im"])
+    constants = constants.to(scale.device)  # the test step runs where Lightning put the batch
     out = {}
     for kind in ViewLighting.KINDS:
         rays = probe_rays(batch["light"], kind)

@@ -69,6 +69,13 @@ def rerender_views(system: LightingSystem, batch: dict, constants: Constants, st
     return views
 
 
+def render_samples(layer) -> str:
+    """How many directions a render layer takes per pixel, in words (li2020 ignores spp)."""
+    if layer.estimator == "li2020":
+        return f"the li2020 {layer.li_size[0]}x{layer.li_size[1]} grid"
+    return f"{layer.spp} spp ({layer.estimator}{', adaptive' if layer.adaptive else ''})"
+
+
 def spread_indices(n: int, k: int) -> list[int]:
     """k indices spread evenly over range(n) (fewer if n < k)."""
     return sorted({int(i) for i in np.linspace(0, n - 1, min(k, n)).round()}) if n else []
@@ -120,7 +127,7 @@ def lighting_figures(system: LightingSystem, batch: dict, constants: Constants, 
         rerender_comparison(
             rerender_views(system, batch, constants),
             report / "rerender.png",
-            title=f"test views, re-render at {system.eval_layer.spp} spp (every 2nd pixel)",
+            title=f"test views, re-render with {render_samples(system.eval_layer)} (every 2nd pixel)",
         ),
         envmap_comparison(
             probe_envmaps(system, batch), report / "envmaps.png", title="incident radiance at test probes (lat-long)"

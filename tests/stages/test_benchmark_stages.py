@@ -81,3 +81,16 @@ def test_whdr_command_line(evaluated, capsys):
     assert value == pytest.approx(darker / sum(c["darker_score"] for c in usable), rel=1e-9)
     assert main(["whdr", str(gray), str(root / "missing.json")]) == 2
     assert "missing.json" in capsys.readouterr().err
+
+
+def test_evaluate_refuses_standins_built_with_other_settings(evaluated, micro_shards):
+    """evaluate reads finetune's stand-ins and never rebuilds them (they are finetune's DVC output)."""
+    from stages import evaluate
+
+    tmp = evaluated[0]
+    done = tmp / "outputs" / "finetune" / "standins" / "done.json"
+    before = done.read_text()
+    common = ["profile=micro", f"paths.outputs={tmp}/outputs", f"paths.reports={tmp}/reports_other"]
+    with pytest.raises(ValueError, match="points differ"):
+        evaluate.run(compose_cfg("evaluate", [*common, f"data_dir={micro_shards}", "standin.points=41"]))
+    assert done.read_text() == before

@@ -90,7 +90,7 @@ def test_stage_reports_mode_metrics_and_baselines(micro_shards, tmp_path):
         assert (tmp_path / "reports" / "train_lighting" / name).is_file(), name
     # model.pt holds the weights the test split was scored with: the best validated checkpoint's when it
     # beat the last epoch, else the last epoch's
-    from pipeline.models.export import load_light_export
+    from pipeline.models.light_net import load_light_export
 
     ckpts = tmp_path / "outputs" / "train_lighting" / "checkpoints"
     chosen = metrics["mixed/val/render_psnr_after_training"] > metrics["mixed/val/render_psnr_last_epoch"]

@@ -135,3 +135,11 @@ def _gbuffer_at(gbuffer: dict, b: torch.Tensor, px: torch.Tensor) -> torch.Tenso
     kd = (1 - metal) * albedo
     ks = f0(albedo, metal)
     return torch.cat([kd, ks, at(gbuffer["normal"]), rough], -1)
+
+
+def load_light_export(path) -> tuple[LightNet, dict]:
+    """(LightNet in eval mode, export dict: light_net, ...) of a `models.export` LightNet export."""
+    from pipeline.models.export import LIGHT_FORMAT, build_from_export, read_export
+
+    blob = read_export(path, LIGHT_FORMAT)
+    return build_from_export(path, LightNet, blob["light_net"], blob["state_dict"]), blob
