@@ -17,7 +17,7 @@ from __future__ import annotations
 
 import json
 import shutil
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from pathlib import Path
 
 import numpy as np
@@ -126,6 +126,9 @@ def build_nyuv2(views: Sequence[dict], out: str | Path, test_every: int = 3) -> 
     return {"train": train, "test": test}
 
 
+STANDIN_DEFAULTS = {"points": 40, "comparisons": 60, "nyu_test_every": 3}
+
+
 def synthetic_test_views(data_dir: str | Path) -> list[dict]:
     """The preprocess shards' test views as (H, W, C) arrays (im, albedo, normal, material; depth and
     mask (H, W)), the source of both stand-ins."""
@@ -148,13 +151,12 @@ def benchmark_roots(
     standin_dir: str | Path,
     data_dir: str | Path,
     seed: int,
-    points: int = 40,
-    comparisons: int = 60,
-    nyu_test_every: int = 3,
+    settings: Mapping | None = None,
     build: bool = True,
 ) -> dict[str, tuple[Path, str]]:
     """{"iiw": (root, source), "nyuv2": (root, source)}: the real roots where given (checked to exist),
-    otherwise stand-ins under `standin_dir` built from the synthetic test views. Stand-ins are reused only
+    otherwise stand-ins under `standin_dir` built from the synthetic test views with `settings`
+    {"points", "comparisons", "nyu_test_every"} (`conf/standin`; missing keys take 40, 60, 3). Stand-ins are reused only
     when `done.json` records the same views, seed and settings; otherwise they are rebuilt, or, with
     build=False (a reader such as `evaluate`, which must not rewrite another stage's output), refused
     with an error saying what differs."""
@@ -173,9 +175,7 @@ def benchmark_roots(
     record = {
         "views": [v["id"] for v in views],
         "seed": int(seed),
-        "points": int(points),
-        "comparisons": int(comparisons),
-        "nyu_test_every": int(nyu_test_every),
+        **{k: int((settings or {}).get(k, v)) for k, v in STANDIN_DEFAULTS.items()},
     }
     done = standin / "done.json"
     try:
@@ -191,7 +191,7 @@ def benchmark_roots(
     if built != record:
         for key in ("iiw", "nyuv2"):  # no file of an older build may survive into the new one
             shutil.rmtree(standin / key, ignore_errors=True)
-        build_iiw(views, standin / "iiw", int(seed), int(points), int(comparisons))
-        build_nyuv2(views, standin / "nyuv2", int(nyu_test_every))
+        build_iiw(views, standin / "iiw", int(seed), record["points"], record["comparisons"])
+        build_nyuv2(views, standin / "nyuv2", record["nyu_test_every"])
         done.write_text(json.dumps(record))
     return out

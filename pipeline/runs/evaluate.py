@@ -134,17 +134,9 @@ def case_panels(net, meta, nyu: NYUTest, rows: list[dict], key: str, k: int) -> 
 def run(cfg: DictConfig) -> dict[str, float]:
     import mlflow
 
-    s = cfg.standin  # the same settings as finetune's (conf/standin); a mismatch is refused, never rebuilt
+    # the same settings as finetune's (conf/standin): a mismatch is refused, never rebuilt
     bench = benchmark_roots(
-        cfg.iiw_root,
-        cfg.nyuv2_root,
-        cfg.standin_dir,
-        cfg.data_dir,
-        int(cfg.seed),
-        s.points,
-        s.comparisons,
-        s.nyu_test_every,
-        build=False,
+        cfg.iiw_root, cfg.nyuv2_root, cfg.standin_dir, cfg.data_dir, int(cfg.seed), cfg.standin, build=False
     )
     sources = {"iiw": bench["iiw"][1], "nyuv2": bench["nyuv2"][1]}
     report = Path(cfg.report_dir)

@@ -28,21 +28,6 @@ from pipeline.systems.trainer import stage_trainer
 from pipeline.tracking import publish, stage_run
 
 
-def roots(cfg: DictConfig) -> dict[str, tuple[Path, str]]:
-    """The IIW and NYUv2 roots of a `finetune` or `evaluate` config (real or stand-in) with their sources."""
-    s = cfg.standin
-    return benchmark_roots(
-        cfg.iiw_root,
-        cfg.nyuv2_root,
-        cfg.standin_dir,
-        cfg.data_dir,
-        int(cfg.seed),
-        s.points,
-        s.comparisons,
-        s.nyu_test_every,
-    )
-
-
 def run(cfg: DictConfig) -> dict[str, float]:
     import lightning as L
     import mlflow
@@ -51,7 +36,7 @@ def run(cfg: DictConfig) -> dict[str, float]:
     L.seed_everything(int(cfg.seed), workers=True, verbose=False)
     net, meta = load_material_export(cfg.model_path)
     size = tuple(meta["input_size"])
-    bench = roots(cfg)
+    bench = benchmark_roots(cfg.iiw_root, cfg.nyuv2_root, cfg.standin_dir, cfg.data_dir, int(cfg.seed), cfg.standin)
     ft = cfg.finetune
     iiw_ids = iiw.split_ids(iiw.list_ids(bench["iiw"][0]))["train"]
     loaders = {
