@@ -28,9 +28,9 @@ def ssim_tonemapped(pred: np.ndarray, target: np.ndarray, scale: float, mask: np
     `tonemap` with the image mean `scale`; with a boolean mask (H, W), the mean of the SSIM map over it."""
     from skimage.metrics import structural_similarity
 
-    def tm(x):
-        x = np.clip(np.asarray(x, np.float64), 0, None) / (2 * scale)
-        return x / (1 + x)
+    def tm(x: np.ndarray) -> np.ndarray:  # `tonemap` on an image's pixels, in float64
+        flat = torch.from_numpy(np.asarray(x, np.float64)).reshape(-1, 3)
+        return tonemap(flat, torch.full((len(flat),), float(scale), dtype=torch.float64)).reshape(x.shape).numpy()
 
     _, full = structural_similarity(
         tm(pred), tm(target), channel_axis=-1, data_range=1.0, gaussian_weights=True, sigma=1.5, full=True

@@ -54,6 +54,11 @@ def backproject_views(depth: torch.Tensor, fov_x) -> torch.Tensor:
 RAY_OFFSET_M = 1e-3  # secondary rays (probe queries, re-render samples) start this far above their surface
 
 
+def pixel_values(images: torch.Tensor, pixels: torch.Tensor) -> torch.Tensor:
+    """Values (M, C) of images (B, C, H, W) at flat pixel indices (M,) into B*H*W (as `grid_pixels` gives)."""
+    return images.permute(0, 2, 3, 1).reshape(-1, images.shape[1])[pixels]
+
+
 def grid_pixels(mask: torch.Tensor, stride: int) -> torch.Tensor:
     """Flat indices (into B*H*W) of the set pixels of mask (B, H, W) on every `stride`-th row and column."""
     grid = torch.zeros_like(mask)

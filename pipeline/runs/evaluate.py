@@ -21,7 +21,7 @@ from pipeline.data.formats.photo import srgb8_to_linear
 from pipeline.data.standins import benchmark_roots
 from pipeline.metrics import normal as normal_metrics
 from pipeline.models.material_net import load_material_export, predict_maps
-from pipeline.systems.evaluation import BenchmarkEvaluation, NYUTest, test_loaders
+from pipeline.systems.evaluation import BENCHMARKS, BenchmarkEvaluation, NYUTest, test_loaders
 from pipeline.systems.trainer import stage_trainer
 from pipeline.tracking import publish, stage_run
 from pipeline.tracking.figures import ranked_cases
@@ -143,15 +143,15 @@ def run(cfg: DictConfig) -> dict[str, float]:
     results, metrics = {}, {}
     with stage_run("evaluate", cfg, tags={"data_source": f"{sources['iiw']}+{sources['nyuv2']}+synthetic"}) as run:
         mlflow.log_params({"iiw_source": sources["iiw"], "nyuv2_source": sources["nyuv2"]})
+        loaders = test_loaders(bench["iiw"][0], bench["nyuv2"][0], cfg.data_dir)  # read once, used per model
+        nyu = loaders[BENCHMARKS.index("nyuv2")].dataset
         for name, path in cfg.models.items():
             net, meta = load_material_export(path)
             system = BenchmarkEvaluation(net, meta, name)
             trainer = stage_trainer(
                 run, {"accelerator": "cpu", "devices": 1, "deterministic": True}, report, (), bool(cfg.progress)
             )
-            trainer.test(
-                system, dataloaders=test_loaders(bench["iiw"][0], bench["nyuv2"][0], cfg.data_dir), verbose=False
-            )
+            trainer.test(system, dataloaders=loaders, verbose=False)
             r = {}
             for key, rows in system.rows.items():
                 _write_csv(report / f"{name}_{key}.csv", rows)
@@ -162,9 +162,7 @@ def run(cfg: DictConfig) -> dict[str, float]:
             r.update({f"nyu/{k}": v for k, v in normal_metrics.pooled_stats(system.pooled_angles).items()})
             results[name] = r
             metrics.update({f"{name}/{k}": v for k, v in r.items()})
-            panels = case_panels(
-                net, meta, NYUTest(bench["nyuv2"][0]), system.rows["nyuv2"], "normal_deg", int(cfg.figure_cases)
-            )
+            panels = case_panels(net, meta, nyu, system.rows["nyuv2"], "normal_deg", int(cfg.figure_cases))
             figure = ranked_cases(panels, report / f"{name}_nyuv2_cases.png")
             mlflow.log_artifact(str(figure), "figures")
         (report / "table.md").write_text(markdown_table(results, sources))

@@ -16,13 +16,13 @@ from collections.abc import Callable
 import lightning as L
 import torch
 
-from pipeline.data.lighting import probe_rays
+from pipeline.data.lighting import ProbeRays, probe_rays
 from pipeline.metrics.image import psnr_tonemapped
 from pipeline.metrics.lighting import light_errors, ray_classes, relmse
 from pipeline.models.light_net import LightNet
 from pipeline.models.material_net import MaterialNet
 from pipeline.models.render_layer import MCRenderLayer
-from pipeline.ops.camera import grid_pixels
+from pipeline.ops.camera import grid_pixels, pixel_values
 from pipeline.systems.lighting_baselines import baseline_metrics
 from pipeline.systems.losses import hdr_relative_loss
 
@@ -156,9 +156,8 @@ class LightingSystem(L.LightningModule):
             probe_rays(batch["light"], kind, n, self.texels, self.generator)
             for kind, n in (("surf", self.probes), ("free", self.free_probes))
         ]
-        parts = [p for p in parts if p is not None]
-        if parts:
-            rays = parts[0] if len(parts) == 1 else type(parts[0]).cat(parts)
+        rays = ProbeRays.cat([p for p in parts if p is not None])
+        if rays is not None:
             rays = rays.to(self.device)
             pred = self.net(ctx, gb, fov, rays.origin, rays.direction, rays.image, self.generator)["radiance"]
             losses["light"] = hdr_relative_loss(pred, rays.radiance, scale[rays.image])
@@ -166,7 +165,7 @@ class LightingSystem(L.LightningModule):
         rgb, b = self.train_layer.render_pixels(
             gb, fov, pix, self.light_fn(ctx, gb, fov, self.generator), self.generator
         )
-        target = batch["im"].permute(0, 2, 3, 1).reshape(-1, 3)[pix]
+        target = pixel_values(batch["im"], pix)
         losses["render"] = (((rgb - target) / scale[b, None]) ** 2).mean()
         total = losses.get("light", 0.0) + self.render_weight * losses["render"]
         bs = batch["im"].shape[0]
@@ -201,7 +200,7 @@ class LightingSystem(L.LightningModule):
         pix = grid_pixels(batch["mask"][:, 0], self.eval_stride)
         gen = self.eval_generator()  # afresh: the re-render draws the directions every baseline draws
         rgb, b = self.eval_layer.render_pixels(gb, fov, pix, self.light_fn(ctx, gb, fov, gen), gen)
-        target = batch["im"].permute(0, 2, 3, 1).reshape(-1, 3)[pix]
+        target = pixel_values(batch["im"], pix)
         out["render_psnr"] = float(psnr_tonemapped(rgb, target, ctx["scale"][b]))
         out["render_relmse"] = float(relmse(rgb, target, ctx["scale"][b]))
         return out

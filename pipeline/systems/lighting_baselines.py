@@ -24,7 +24,7 @@ from pipeline.data.lighting import ViewLighting, probe_rays
 from pipeline.metrics.image import psnr_tonemapped
 from pipeline.metrics.lighting import light_errors
 from pipeline.models.light_net.branches import image_scale
-from pipeline.ops.camera import grid_pixels
+from pipeline.ops.camera import grid_pixels, pixel_values
 from pipeline.ops.envmap import hemisphere_lookup
 
 
@@ -94,12 +94,11 @@ def baseline_metrics(batch: dict, constants: Constants, system) -> dict[str, flo
         for name, (pred, target, sc) in cases.items():
             out.update({f"{name}/{kind}_{k}": v for k, v in light_errors(pred, target, sc).items()})
     B, _, H, W = batch["im"].shape
-    im = batch["im"].permute(0, 2, 3, 1).reshape(-1, 3)
     layer = system.eval_layer
 
     def psnr(gbuf, pixels, radiance) -> float:
         rgb, b = layer.render_pixels(gbuf, fov, pixels, radiance, system.eval_generator())
-        return float(psnr_tonemapped(rgb, im[pixels], scale[b]))
+        return float(psnr_tonemapped(rgb, pixel_values(batch["im"], pixels), scale[b]))
 
     pix = grid_pixels(batch["mask"][:, 0], system.eval_stride)
     model_gb = system.gbuffers(batch)  # what the model sees (predicted or ground truth, per config)
@@ -120,5 +119,5 @@ def baseline_metrics(batch: dict, constants: Constants, system) -> dict[str, flo
     ctx = system.net.encode(batch["im"], model_gb["depth"], fov)
     gen = system.eval_generator()
     rgb, b = layer.render_pixels(model_gb, fov, probe_pix, system.light_fn(ctx, model_gb, fov, gen), gen)
-    out["model/render_psnr_at_probes"] = float(psnr_tonemapped(rgb, im[probe_pix], scale[b]))
+    out["model/render_psnr_at_probes"] = float(psnr_tonemapped(rgb, pixel_values(batch["im"], probe_pix), scale[b]))
     return out

@@ -13,7 +13,7 @@ import numpy as np
 import torch
 
 from pipeline.metrics.image import psnr_tonemapped
-from pipeline.ops.camera import grid_pixels
+from pipeline.ops.camera import grid_pixels, pixel_values
 from pipeline.systems.lighting import LightingSystem
 from pipeline.systems.lighting_baselines import Constants
 from pipeline.tracking.figures import envmap_comparison, rerender_comparison
@@ -45,7 +45,7 @@ def rerender_views(system: LightingSystem, batch: dict, constants: Constants, st
     const, _ = layer.render_pixels(
         gb, fov, pix, lambda idx, o, wi, bi: ratio * scale[bi, None], system.eval_generator()
     )
-    target = batch["im"].permute(0, 2, 3, 1).reshape(-1, 3)[pix]
+    target = pixel_values(batch["im"], pix)
     B, _, H, W = batch["im"].shape
     images = {k: scatter_grid(v, pix, (B, H, W), stride) for k, v in (("model", model), ("constant", const))}
     views = []

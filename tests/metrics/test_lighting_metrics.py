@@ -140,3 +140,24 @@ def test_probe_rays_take_every_texel_in_order_or_a_seeded_sample():
     a = probe_rays([light], "surf", 1, 2, torch.Generator().manual_seed(3))
     b = probe_rays([light], "surf", 1, 2, torch.Generator().manual_seed(3))
     assert len(a) == 2 and torch.equal(a.radiance, b.radiance)
+
+
+def test_ssim_tonemapped_is_one_on_itself_exposure_invariant_and_masked():
+    import numpy as np
+    import pytest
+
+    from pipeline.metrics.image import ssim_tonemapped
+
+    rng = np.random.default_rng(0)
+    a = rng.uniform(0, 4, (24, 32, 3))
+    b = a * rng.uniform(0.5, 1.5, a.shape)
+    assert ssim_tonemapped(a, a, 1.0) == pytest.approx(1.0)
+    s = ssim_tonemapped(b, a, 1.0)
+    assert 0 < s < 0.99
+    assert ssim_tonemapped(b * 10, a * 10, 10.0) == pytest.approx(s, rel=1e-9)  # the tone map follows exposure
+    mask = np.zeros((24, 32), bool)
+    mask[:, :16] = True
+    b[:, 16:] = a[:, 16:] * 3  # damage outside the mask lowers the whole-image score more
+    assert ssim_tonemapped(b, a, 1.0, mask) > ssim_tonemapped(b, a, 1.0)
+    with pytest.raises(ValueError, match="no pixel"):
+        ssim_tonemapped(b, a, 1.0, np.zeros((24, 32), bool))
