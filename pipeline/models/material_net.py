@@ -5,8 +5,12 @@ albedo (B, 3, H, W) in [0, 1], normal (B, 3, H, W) unit view-space vectors (+z t
 material (B, 2, H, W) roughness and metallic in [0, 1], depth (B, 1, H, W) positive z-depth in arbitrary
 scale (losses and metrics fit the scale by least squares, as a single image fixes depth only up to scale).
 
+Layouts: `compact` (this project's U-Net: any backbone, decoders ending at 1/2 resolution, then upsampled)
+and `mgnet` (the released MGNet layer for layer, DenseNet121 only; `pipeline.models.mgnet`).
 Backbones: `densenet121` (the paper), `resnet34`, and `small` (a plain strided CNN sized for a CPU).
 ImageNet weights cannot be downloaded here; `pretrained_path` loads a torchvision state dict from disk.
+Input normalisation: `log_mean` (divide by the image mean, log1p: exposure invariant) or `clamp` (the
+released code's clamp to [0, 1] of the linear HDR input).
 """
 
 from __future__ import annotations
@@ -18,6 +22,8 @@ import torch
 from torch import nn
 from torch.nn import functional as F
 
+from pipeline.models.mgnet import HEAD_CHANNELS, MGNetDecoder, MGNetEncoder, mgnet_outputs
+
 HEADS = {"albedo": 3, "normal": 3, "material": 2, "depth": 1}
 
 
@@ -26,6 +32,10 @@ def normalize_input(im: torch.Tensor) -> torch.Tensor:
     log-compressed, so highlights hundreds of times the mean stay in a trainable range."""
     scale = im.clamp(min=0).mean(dim=(1, 2, 3), keepdim=True).clamp(min=1e-6)
     return torch.log1p(im.clamp(min=0) / scale)
+
+
+INPUT_NORMS = ("log_mean", "clamp")
+LAYOUTS = ("compact", "mgnet")
 
 
 def _conv(cin: int, cout: int, stride: int = 1, norm: str = "batch") -> nn.Sequential:
@@ -130,26 +140,43 @@ class MaterialNet(nn.Module):
         backbone: str = "small",
         decoder_widths: tuple[int, ...] = (96, 64, 48, 32),
         pretrained_path: str | None = None,
+        layout: str = "compact",
+        decoder_groups: tuple[int, ...] | None = None,
+        input_norm: str = "log_mean",
     ):
         super().__init__()
         if backbone not in ENCODERS:
             raise ValueError(f"model.backbone={backbone!r}: choose one of {sorted(ENCODERS)}")
-        if len(decoder_widths) != 4:
-            raise ValueError(f"model.decoder_widths={list(decoder_widths)}: need 4 widths (1/16 .. 1/2)")
-        self.backbone = backbone
-        self.encoder = ENCODERS[backbone]()
+        if layout not in LAYOUTS:
+            raise ValueError(f"model.layout={layout!r}: choose one of {LAYOUTS}")
+        if input_norm not in INPUT_NORMS:
+            raise ValueError(f"model.input_norm={input_norm!r}: choose one of {INPUT_NORMS}")
+        self.backbone, self.layout, self.input_norm = backbone, layout, input_norm
+        if layout == "mgnet":
+            if backbone != "densenet121":
+                raise ValueError(f"model.layout=mgnet needs model.backbone=densenet121, got {backbone!r}")
+            self.encoder = MGNetEncoder()
+            heads = {
+                k: MGNetDecoder(self.encoder.channels, list(decoder_widths), list(decoder_groups or ()), c)
+                for k, c in HEAD_CHANNELS.items()
+            }
+        else:
+            if len(decoder_widths) != 4:
+                raise ValueError(f"model.decoder_widths={list(decoder_widths)}: need 4 widths (1/16 .. 1/2)")
+            self.encoder = ENCODERS[backbone]()
+            heads = {k: Decoder(self.encoder.channels, list(decoder_widths), c) for k, c in HEADS.items()}
         if pretrained_path:
             load_backbone_weights(self.encoder, pretrained_path)
-        self.decoders = nn.ModuleDict(
-            {k: Decoder(self.encoder.channels, list(decoder_widths), c) for k, c in HEADS.items()}
-        )
+        self.decoders = nn.ModuleDict(heads)
 
     def forward(self, im: torch.Tensor) -> dict[str, torch.Tensor]:
         if im.ndim != 4 or im.shape[1] != 3:
             raise ValueError(f"MaterialNet expects (B, 3, H, W) images, got {tuple(im.shape)}")
-        x = normalize_input(im)
+        x = normalize_input(im) if self.input_norm == "log_mean" else im.clamp(0, 1)
         feats = self.encoder(x)
         raw = {k: dec(feats, x) for k, dec in self.decoders.items()}
+        if self.layout == "mgnet":
+            return mgnet_outputs(raw)
         return {
             "albedo": torch.sigmoid(raw["albedo"]),
             "normal": F.normalize(raw["normal"], dim=1, eps=1e-6),

@@ -64,3 +64,26 @@ def grid_pixels(mask: torch.Tensor, stride: int) -> torch.Tensor:
     grid = torch.zeros_like(mask)
     grid[:, ::stride, ::stride] = True
     return torch.nonzero((grid & mask).reshape(-1)).squeeze(-1)
+
+
+def depth_range(depth: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """Smallest and largest valid z-depth (B,) of (B, H, W) maps (invalid: 0 or non-finite; an image with
+    none gets 1 for both)."""
+    valid = torch.isfinite(depth) & (depth > 0)
+    big = torch.finfo(depth.dtype).max
+    lo = torch.where(valid, depth, torch.full_like(depth, big)).flatten(1).amin(1)
+    hi = torch.where(valid, depth, torch.zeros_like(depth)).flatten(1).amax(1)
+    none = ~valid.flatten(1).any(1)
+    one = torch.ones_like(lo)
+    return torch.where(none, one, lo), torch.where(none, one, hi)
+
+
+def window_depth_difference(z_surface, z_ray, depth_min, depth_max) -> torch.Tensor:
+    """The released SSRT's depth difference between a ray and the surface it passes behind, in OpenGL
+    window depth [0, 1] (N,): view depth divided by the image's largest depth, projected with near plane
+    n = depth_min / depth_max and far plane 1, so z_win(d) = (d - n) / (d (1 - n)). Its difference is
+    n / (1 - n) * (1/d_surface - 1/d_ray) = depth_min depth_max / (depth_max - depth_min) (1/z_s - 1/z_r),
+    with z in metres (N,) and the per-ray image range (N,). Hyperbolic in depth: a gap far from the camera
+    weighs much less than the same gap near it."""
+    span = (depth_max - depth_min).clamp(min=1e-6)
+    return depth_min * depth_max / span * (1.0 / z_surface - 1.0 / z_ray)

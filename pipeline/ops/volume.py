@@ -52,6 +52,15 @@ def ray_box(origin: torch.Tensor, direction: torch.Tensor, lo: torch.Tensor, hi:
     return t_near, t_far
 
 
+def ray_sphere(origin: torch.Tensor, direction: torch.Tensor, radius: float) -> torch.Tensor:
+    """Exit distance (N,) of rays o + t w (unit w) from the sphere |x| = radius about the view-space origin:
+    the larger root of t^2 + 2 (o.w) t + |o|^2 - r^2 = 0; 0 for rays that miss it or leave it behind."""
+    b = (origin * direction).sum(-1)
+    c = (origin * origin).sum(-1) - radius**2
+    disc = (b * b - c).clamp(min=0)
+    return (-b + torch.sqrt(disc)).clamp(min=0)
+
+
 def scene_bounds(depth: torch.Tensor, fov_x, margin: float = 0.1) -> torch.Tensor:
     """(B, H, W) z-depth (0 / non-finite = none), fov_x float or (B,) -> (B, 2, 3) view-space box of the
     visible surfaces and the camera, grown by `margin` of its size (the out-of-view scene is assumed to

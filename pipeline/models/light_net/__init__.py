@@ -8,6 +8,10 @@ u = 1 for misses.
 Modes: `mixed` (the paper), `ssrt_only` (misses get no light), `out_of_view_only`. Compute follows need:
 in `mixed` the out-of-view branch is queried only for rays with u >= `out_threshold`; below it a ray
 keeps L_ssrt alone (its u < threshold share of L_out is dropped). `out_threshold=0` queries every ray.
+
+gap_units: the depth gap in u = tanh(k gap) is in `metres` (this project) or `window` (the released
+code: OpenGL window depth of the view divided by its largest depth, so k = 10 means what it meant there;
+`pipeline.ops.camera.window_depth_difference`).
 """
 
 from __future__ import annotations
@@ -18,9 +22,11 @@ from torch import nn
 from pipeline.models.light_net.branches import LocalBranch, OutOfViewBranch, image_scale
 from pipeline.ops import ssrt
 from pipeline.ops.brdf import f0
+from pipeline.ops.camera import depth_range, window_depth_difference
 from pipeline.ops.volume import scene_bounds
 
 MODES = ("mixed", "ssrt_only", "out_of_view_only")
+GAP_UNITS = ("metres", "window")
 
 
 def blend(l_ssrt: torch.Tensor, l_out: torch.Tensor, u: torch.Tensor) -> torch.Tensor:
@@ -43,10 +49,14 @@ class LightNet(nn.Module):
         local: dict | None = None,
         out_of_view: dict | None = None,
         ssrt_compiled: bool = False,
+        gap_units: str = "metres",
     ):
         super().__init__()
         if mode not in MODES:
             raise ValueError(f"model.light_net.mode={mode!r}: choose one of {MODES}")
+        if gap_units not in GAP_UNITS:
+            raise ValueError(f"model.light_net.gap_units={gap_units!r}: choose one of {GAP_UNITS}")
+        self.gap_units = gap_units
         if not 0.0 <= out_threshold <= 1.0:
             raise ValueError(f"model.light_net.out_threshold={out_threshold}: must be in [0, 1]")
         self.mode, self.k, self.out_threshold, self.ssrt_compiled = mode, float(k), float(out_threshold), ssrt_compiled
@@ -56,6 +66,7 @@ class LightNet(nn.Module):
     def encode(self, im: torch.Tensor, depth: torch.Tensor, fov_x) -> dict:
         """Per-image context: im (B, 3, H, W) HDR, depth (B, H, W) z-depth metres, fov_x float or (B,)."""
         ctx = {"scale": image_scale(im), "bounds": scene_bounds(depth, fov_x), "size": im.shape[-2:]}
+        ctx["depth_min"], ctx["depth_max"] = depth_range(depth)
         if self.local is not None:
             ctx["local"] = self.local.encode(im)
             ctx["image"] = im.clamp(min=0) / ctx["scale"].view(-1, 1, 1, 1)
@@ -70,6 +81,8 @@ class LightNet(nn.Module):
         Returns radiance (N, 3), u (N,), hit (N,) and out_queries (number of out-of-view evaluations)."""
         N = len(wi)
         pixel, hit, gap = trace_views(gbuffer, fov_x, origin.detach(), wi.detach(), batch_index, self.ssrt_compiled)
+        if self.gap_units == "window":
+            gap = self._window_gap(ctx, gbuffer["depth"], pixel, hit, gap, batch_index)
         u = confidence(hit, gap.to(wi.dtype), self.k)
         l_ssrt = wi.new_zeros(N, 3)
         if self.local is not None and hit.any():
@@ -96,6 +109,7 @@ class LightNet(nn.Module):
                     origin[q],
                     wi[q],
                     generator,
+                    depth_max=ctx["depth_max"],
                 ),
             )
         if self.mode == "out_of_view_only":
@@ -103,6 +117,17 @@ class LightNet(nn.Module):
         else:
             radiance = torch.where(need.unsqueeze(-1), blend(l_ssrt, l_out, u), l_ssrt)
         return {"radiance": radiance, "u": u, "hit": hit, "out_queries": int(q.numel())}
+
+    @staticmethod
+    def _window_gap(ctx, depth, pixel, hit, gap, batch_index) -> torch.Tensor:
+        """Metric gaps (N,) of hits -> window-depth gaps (misses keep theirs; u = 1 for them anyway)."""
+        h = torch.nonzero(hit).squeeze(-1)
+        if not h.numel():
+            return gap
+        b = batch_index[h]
+        z_s = depth[b, pixel[h, 0], pixel[h, 1]].to(gap.dtype)
+        win = window_depth_difference(z_s, z_s + gap[h], ctx["depth_min"][b], ctx["depth_max"][b])
+        return gap.index_put((h,), win.to(gap.dtype))
 
 
 def trace_views(gbuffer: dict, fov_x, origin, wi, batch_index, compiled: bool = False):

@@ -6,8 +6,14 @@ radiance leaving the hit towards the query point.
 
 Out-of-view branch: a second CNN gives one global feature per image; a hypernetwork turns it into the
 weights of a small NeRF MLP (encoded position -> density, radiance), volume-rendered along p + t wi
-inside the scene's bounding box (from the depth map); light that leaves the box unabsorbed takes a
-direction-only "far field" radiance (windows, sky).
+inside the scene's bounds: `box` (this project: the depth map's bounding box, positions mapped to
+[-1, 1]^3, density scaled to O(1) optical depth; light that leaves the box unabsorbed takes a
+direction-only "far field" radiance, windows and sky, when `far_field` is on) or `sphere` (the released
+code: positions in units of the view's maximum depth, a camera-centred sphere of radius
+`sphere_radius` from `near`, raw density, nothing behind the sphere).
+
+Options reproduce the released layers for `model/light_net=paper` (docs/method.md): the local MLP's
+`skips` and random Fourier features (`encoding=rff`), ReLU outputs, and the hypernetwork's structure.
 
 Radiance is in units of the input image's mean (the networks see mean-normalised images), so outputs
 scale with exposure; both are non-negative (softplus).
@@ -21,10 +27,14 @@ from torch.nn import functional as F
 
 from pipeline.models.light_net.hyper import HyperMLP
 from pipeline.models.material_net import ENCODERS, normalize_input
-from pipeline.ops.encodings import fourier, fourier_dim
-from pipeline.ops.volume import composite, ray_box, stratified_edges
+from pipeline.ops.encodings import fourier, fourier_dim, random_fourier
+from pipeline.ops.volume import composite, ray_box, ray_sphere, stratified_edges
 
 GBUFFER_DIM = 10  # Kd (3), Ks (3), normal (3), roughness (1)
+GBUFFER_GROUPS = (("kd", 3), ("ks", 3), ("normal", 3), ("roughness", 1))  # the split of those 10
+ENCODINGS = ("nerf", "rff")
+ACTIVATIONS = ("softplus", "relu")
+BOUNDS = ("box", "sphere")
 
 
 def image_scale(im: torch.Tensor) -> torch.Tensor:
@@ -45,12 +55,56 @@ def _mlp(cin: int, hidden: int, layers: int, cout: int) -> nn.Sequential:
     return nn.Sequential(*mods, nn.Linear(c, cout))
 
 
+class SkipMLP(nn.Module):
+    """`layers` hidden Linear + ReLU of width `hidden`, the input concatenated again after each hidden
+    layer whose index is in `skips` (NeRF's skip), then a Linear to `cout`. mlp[-1] is the output layer."""
+
+    def __init__(self, cin: int, hidden: int, layers: int, cout: int, skips=()):
+        super().__init__()
+        self.skips = {int(i) for i in skips}
+        if any(not 0 <= i < layers - 1 for i in self.skips):
+            raise ValueError(
+                f"skips={sorted(self.skips)}: each must index a hidden layer before the last ({layers - 1})"
+            )
+        linears, c = [], cin
+        for i in range(layers):
+            linears.append(nn.Linear(c, hidden))
+            c = hidden + (cin if i in self.skips else 0)
+        linears.append(nn.Linear(c, cout))
+        self.linears = nn.ModuleList(linears)
+
+    def __getitem__(self, i: int) -> nn.Linear:
+        return self.linears[i]
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        h = x
+        for i, layer in enumerate(self.linears[:-1]):
+            h = F.relu(layer(h))
+            if i in self.skips:
+                h = torch.cat([h, x], -1)
+        return self.linears[-1](h)
+
+
+def _activate(x: torch.Tensor, activation: str) -> torch.Tensor:
+    return F.softplus(x) if activation == "softplus" else F.relu(x)
+
+
+def _check(name: str, value: str, choices: tuple[str, ...]) -> None:
+    if value not in choices:
+        raise ValueError(f"model.light_net.{name}={value!r}: choose one of {choices}")
+
+
 class LocalBranch(nn.Module):
     """pixel_base: also read the image's own radiance at the hit pixel (in units of the image mean) and
     predict L = pixel * exp(g) + softplus(a) from the MLP's (g, a), instead of softplus(MLP). The camera
     saw that pixel's radiance leaving the hit towards it; for a diffuse hit it is exactly the radiance
     leaving towards any query point, so the network only learns the view-dependent correction, and a
-    visible lamp or window keeps its full HDR value instead of being decoded from compressed features."""
+    visible lamp or window keeps its full HDR value instead of being decoded from compressed features.
+
+    encoding: `nerf` (the direction NeRF-encoded with `frequencies`, G-buffers as they are) or `rff` (the
+    released code: direction, normal, Kd, Ks and roughness each through its own random Fourier basis of
+    `rff_features` columns drawn from N(0, rff_sigma^2), stored with the weights). skips: hidden layers
+    after which the MLP input is concatenated again. activation: of the radiance (softplus | relu)."""
 
     def __init__(
         self,
@@ -60,13 +114,28 @@ class LocalBranch(nn.Module):
         hidden: int = 128,
         layers: int = 3,
         pixel_base: bool = False,
+        encoding: str = "nerf",
+        rff_features: int = 32,
+        rff_sigma: float = 1.0,
+        skips: tuple[int, ...] = (),
+        activation: str = "softplus",
     ):
         super().__init__()
+        _check("local.encoding", encoding, ENCODINGS)
+        _check("local.activation", activation, ACTIVATIONS)
         self.encoder = _encoder(backbone)
         self.levels, self.frequencies, self.pixel_base = int(levels), int(frequencies), bool(pixel_base)
+        self.encoding, self.activation = encoding, activation
         feat_dim = sum(self.encoder.channels[: self.levels])
         extra = 3 if self.pixel_base else 0
-        self.mlp = _mlp(fourier_dim(3, frequencies) + feat_dim + GBUFFER_DIM + extra, hidden, layers, 6 if extra else 3)
+        if encoding == "rff":
+            for name, dim in (("direction", 3), *GBUFFER_GROUPS):
+                self.register_buffer(f"rff_{name}", torch.randn(dim, int(rff_features)) * float(rff_sigma))
+            enc_dim = 2 * int(rff_features) * (1 + len(GBUFFER_GROUPS))
+        else:
+            enc_dim = fourier_dim(3, frequencies) + GBUFFER_DIM
+        cin, cout = enc_dim + feat_dim + extra, 6 if extra else 3
+        self.mlp = SkipMLP(cin, hidden, layers, cout, skips) if skips else _mlp(cin, hidden, layers, cout)
         if self.pixel_base:
             with torch.no_grad():  # start near L = pixel: unit gain, a small additive term
                 self.mlp[-1].weight[:3].mul_(0.1)
@@ -93,9 +162,9 @@ class LocalBranch(nn.Module):
                 g = grid[sel].view(1, -1, 1, 2)
                 out[sel] = F.grid_sample(f[b : b + 1], g, mode="bilinear", align_corners=False)[0, :, :, 0].T
             sampled.append(out)
-        x = torch.cat([fourier(wi, self.frequencies), *sampled, gbuf], -1)
+        x = torch.cat([*self._encode_inputs(wi, gbuf), *sampled], -1)
         if not self.pixel_base:
-            return F.softplus(self.mlp(x)) * scale[batch_index].unsqueeze(-1)
+            return _activate(self.mlp(x), self.activation) * scale[batch_index].unsqueeze(-1)
         if image is None:
             raise ValueError("LocalBranch(pixel_base=True).query needs the normalised image")
         pix = image[batch_index, :, pixel[:, 0], pixel[:, 1]].clamp(min=0)
@@ -103,45 +172,85 @@ class LocalBranch(nn.Module):
         radiance = pix * torch.exp(out[:, :3].clamp(-10.0, 5.0)) + F.softplus(out[:, 3:])
         return radiance * scale[batch_index].unsqueeze(-1)
 
+    def _encode_inputs(self, wi: torch.Tensor, gbuf: torch.Tensor) -> list[torch.Tensor]:
+        if self.encoding == "nerf":
+            return [fourier(wi, self.frequencies), gbuf]
+        parts = [random_fourier(wi, self.rff_direction)]
+        for part, (name, _) in zip(gbuf.split([d for _, d in GBUFFER_GROUPS], -1), GBUFFER_GROUPS, strict=True):
+            parts.append(random_fourier(part, getattr(self, f"rff_{name}")))
+        return parts
+
 
 class OutOfViewBranch(nn.Module):
+    """feature_dim: the global feature's width (null: the encoder's own pooled width, no projection, as
+    released); hyper: HyperMLP structure (trunk, head_hidden, split_bias, param_activation); bounds, near,
+    sphere_radius, far_field: see the module docstring; activation: of density and radiance;
+    pi_encoding: positions encoded with sin(2^k pi x) (off: sin(2^k x), as released)."""
+
     def __init__(
         self,
         backbone: str = "small",
-        feature_dim: int = 128,
+        feature_dim: int | None = 128,
         nerf_hidden: int = 64,
         nerf_layers: int = 2,
         frequencies: int = 6,
         dir_frequencies: int = 4,
         samples: int = 16,
+        hyper: dict | None = None,
+        bounds: str = "box",
+        sphere_radius: float = 3.0,
+        near: float = 0.05,
+        far_field: bool = True,
+        activation: str = "softplus",
+        pi_encoding: bool = True,
     ):
         super().__init__()
+        _check("out_of_view.bounds", bounds, BOUNDS)
+        _check("out_of_view.activation", activation, ACTIVATIONS)
+        if bounds == "sphere" and not 0 <= near < sphere_radius:
+            raise ValueError(f"model.light_net.out_of_view: need 0 <= near ({near}) < sphere_radius ({sphere_radius})")
         self.encoder = _encoder(backbone)
-        self.to_feature = nn.Linear(self.encoder.channels[-1], feature_dim)
+        width = self.encoder.channels[-1]
+        self.to_feature = nn.Identity() if feature_dim is None else nn.Linear(width, int(feature_dim))
+        feature_dim = width if feature_dim is None else int(feature_dim)
         self.frequencies, self.dir_frequencies, self.samples = int(frequencies), int(dir_frequencies), int(samples)
+        self.bounds, self.sphere_radius, self.near = bounds, float(sphere_radius), float(near)
+        self.activation, self.pi_encoding = activation, bool(pi_encoding)
         sizes = [fourier_dim(3, frequencies)] + [nerf_hidden] * nerf_layers + [4]
-        self.hyper = HyperMLP(feature_dim, sizes)
-        self.far = _mlp(feature_dim + fourier_dim(3, dir_frequencies), 64, 2, 3)
+        self.hyper = HyperMLP(feature_dim, sizes, **(hyper or {}))
+        self.far = _mlp(feature_dim + fourier_dim(3, dir_frequencies), 64, 2, 3) if far_field else None
 
     def encode(self, im: torch.Tensor) -> tuple[torch.Tensor, list]:
         feature = self.to_feature(self.encoder(normalize_input(im))[-1].mean(dim=(2, 3)))
         return feature, self.hyper(feature)
 
-    def query(self, feature, params, scale, bounds, batch_index, origin, wi, generator=None):
-        """Volume-render rays (N,) of images batch_index inside their bounds (B, 2, 3) (box min, max in
-        view space, metres) -> radiance (N, 3). generator None: stratum midpoints (deterministic)."""
-        lo, hi = bounds[batch_index, 0], bounds[batch_index, 1]
-        t_near, t_far = ray_box(origin, wi, lo, hi)
+    def query(self, feature, params, scale, bounds, batch_index, origin, wi, generator=None, depth_max=None):
+        """Volume-render rays (N,) of images batch_index -> radiance (N, 3). bounds (B, 2, 3): box min, max
+        in view space, metres (`box`); depth_max (B,): each view's largest z-depth, metres (`sphere`).
+        generator None: stratum midpoints (deterministic)."""
+        if self.bounds == "sphere":
+            if depth_max is None:
+                raise ValueError("out_of_view.bounds=sphere: query needs depth_max")
+            unit = depth_max[batch_index].clamp(min=1e-6)[:, None]
+            origin = origin / unit  # positions in units of the view's maximum depth (released convention)
+            t_far = ray_sphere(origin, wi, self.sphere_radius).clamp(min=self.near)
+            t_near = torch.full_like(t_far, self.near)
+        else:
+            lo, hi = bounds[batch_index, 0], bounds[batch_index, 1]
+            t_near, t_far = ray_box(origin, wi, lo, hi)
         edges, mids = stratified_edges(t_near, t_far, self.samples, generator)
         pts = origin[:, None, :] + mids[..., None] * wi[:, None, :]  # (N, S, 3)
-        centre, half = (lo + hi) / 2, ((hi - lo) / 2).clamp(min=1e-3)
-        local = (pts - centre[:, None]) / half[:, None]  # the box maps to [-1, 1]^3
+        if self.bounds == "box":
+            centre, half = (lo + hi) / 2, ((hi - lo) / 2).clamp(min=1e-3)
+            pts = (pts - centre[:, None]) / half[:, None]  # the box maps to [-1, 1]^3
         S = self.samples
-        out = HyperMLP.run_generated(
-            params, fourier(local.reshape(-1, 3), self.frequencies), batch_index.repeat_interleave(S)
-        )
-        out = out.view(-1, S, 4)
-        sigma = F.softplus(out[..., 0]) * (S / (t_far - t_near).clamp(min=1e-3))[:, None]  # O(1) optical depth
-        rad, _, left = composite(sigma, F.softplus(out[..., 1:]), edges)
-        far = F.softplus(self.far(torch.cat([feature[batch_index], fourier(wi, self.dir_frequencies)], -1)))
-        return (rad + left[:, None] * far) * scale[batch_index].unsqueeze(-1)
+        encoded = fourier(pts.reshape(-1, 3), self.frequencies, pi=self.pi_encoding)
+        out = HyperMLP.run_generated(params, encoded, batch_index.repeat_interleave(S)).view(-1, S, 4)
+        sigma = _activate(out[..., 0], self.activation)
+        if self.bounds == "box":
+            sigma = sigma * (S / (t_far - t_near).clamp(min=1e-3))[:, None]  # O(1) optical depth
+        rad, _, left = composite(sigma, _activate(out[..., 1:], self.activation), edges)
+        if self.far is not None:
+            far = F.softplus(self.far(torch.cat([feature[batch_index], fourier(wi, self.dir_frequencies)], -1)))
+            rad = rad + left[:, None] * far
+        return rad * scale[batch_index].unsqueeze(-1)

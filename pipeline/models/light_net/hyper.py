@@ -8,38 +8,90 @@ import torch
 from torch import nn
 from torch.nn import functional as F
 
+PARAM_ACTIVATIONS = ("none", "leaky_relu")
+
+
+def _stack(cin: int, widths, cout: int | None = None) -> nn.Sequential:
+    """Linear + ReLU per width, then an optional final Linear to `cout` (no activation)."""
+    mods, c = [], cin
+    for w in widths:
+        mods += [nn.Linear(c, w), nn.ReLU(inplace=True)]
+        c = w
+    if cout is not None:
+        mods.append(nn.Linear(c, cout))
+    return nn.Sequential(*mods)
+
 
 class HyperMLP(nn.Module):
     """Emits the weights of an MLP with layer sizes `sizes` (e.g. [in, 64, 64, out]) from a feature (B, F).
 
-    forward(feature) -> list of (W (B, out, in), b (B, out)) per layer; `apply(params, x, scene)` runs the
-    generated MLP on points x (N, in) of scene index `scene` (N,) with ReLU between layers and no final
-    activation. The emitted weights start at a fan-in scaled initialisation (a small head on a normalised
-    feature), so the generated MLP is well conditioned from the first step.
+    forward(feature) -> list of (W (B, out, in), b (B, out)) per layer; `run_generated(params, x, scene)`
+    runs the generated MLP on points x (N, in) of scene index `scene` (N,) with ReLU between layers and no
+    final activation.
+
+    Structure: a trunk (Linear + ReLU per width in `trunk`), then one head per generated layer (hidden
+    Linear + ReLU layers `head_hidden`, then a Linear to the layer's parameters). `split_bias`: weights and
+    biases come from two independent trunk-and-heads networks (the released hypernetwork: trunk 1024, 1024
+    and heads 4096, 4096); `param_activation="leaky_relu"` applies LeakyReLU(0.1) to the emitted
+    parameters, as released. The last Linear of each head starts at a fan-in scaled initialisation of the
+    generated layer (its bias) plus a small weight, so the generated MLP is well conditioned from step one.
     """
 
-    def __init__(self, feature_dim: int, sizes: list[int], hidden: int = 128):
+    def __init__(
+        self,
+        feature_dim: int,
+        sizes: list[int],
+        trunk: tuple[int, ...] = (128,),
+        head_hidden: tuple[int, ...] = (),
+        split_bias: bool = False,
+        param_activation: str = "none",
+    ):
         super().__init__()
         if len(sizes) < 2:
             raise ValueError(f"sizes={sizes}: need at least input and output sizes")
-        self.sizes = list(sizes)
-        self.trunk = nn.Sequential(nn.Linear(feature_dim, hidden), nn.ReLU(inplace=True))
-        self.heads = nn.ModuleList()
-        for cin, cout in zip(sizes[:-1], sizes[1:], strict=True):
-            head = nn.Linear(hidden, cout * cin + cout)
-            nn.init.normal_(head.weight, std=0.1 / math.sqrt(hidden))
+        if not trunk:
+            raise ValueError("hyper.trunk: need at least one trunk width")
+        if param_activation not in PARAM_ACTIVATIONS:
+            raise ValueError(f"hyper.param_activation={param_activation!r}: choose one of {PARAM_ACTIVATIONS}")
+        self.sizes, self.split_bias, self.param_activation = list(sizes), bool(split_bias), param_activation
+        layers = list(zip(sizes[:-1], sizes[1:], strict=True))
+        weight_outs = [co * ci + (0 if split_bias else co) for ci, co in layers]
+        self.trunk, self.heads = self._emitter(feature_dim, trunk, head_hidden, weight_outs, layers, with_w=True)
+        if split_bias:
+            self.bias_trunk, self.bias_heads = self._emitter(
+                feature_dim, trunk, head_hidden, [co for _, co in layers], layers, with_w=False
+            )
+
+    def _emitter(self, feature_dim, trunk, head_hidden, outs, layers, with_w: bool):
+        body = _stack(feature_dim, trunk)
+        heads = nn.ModuleList()
+        for out, (cin, cout) in zip(outs, layers, strict=True):
+            head = _stack(trunk[-1], head_hidden, out)
+            last = head[-1]
+            nn.init.normal_(last.weight, std=0.1 / math.sqrt(last.in_features))
             with torch.no_grad():  # bias = a fixed ordinary initialisation of the generated layer
                 w0 = torch.empty(cout, cin)
                 nn.init.kaiming_uniform_(w0, a=math.sqrt(5))
-                head.bias.copy_(torch.cat([w0.flatten(), torch.zeros(cout)]))
-            self.heads.append(head)
+                init = [w0.flatten()] if with_w else []
+                if not (with_w and self.split_bias):
+                    init.append(torch.zeros(cout))
+                last.bias.copy_(torch.cat(init))
+            heads.append(head[0] if len(head) == 1 else head)
+        return body, heads
 
     def forward(self, feature: torch.Tensor) -> list[tuple[torch.Tensor, torch.Tensor]]:
         h = self.trunk(feature)
+        hb = self.bias_trunk(feature) if self.split_bias else None
         params = []
-        for head, cin, cout in zip(self.heads, self.sizes[:-1], self.sizes[1:], strict=True):
-            flat = head(h)
-            params.append((flat[:, : cout * cin].view(-1, cout, cin), flat[:, cout * cin :]))
+        for k, (cin, cout) in enumerate(zip(self.sizes[:-1], self.sizes[1:], strict=True)):
+            flat = self.heads[k](h)
+            if self.split_bias:
+                w, b = flat, self.bias_heads[k](hb)
+            else:
+                w, b = flat[:, : cout * cin], flat[:, cout * cin :]
+            if self.param_activation == "leaky_relu":
+                w, b = F.leaky_relu(w, 0.1), F.leaky_relu(b, 0.1)
+            params.append((w.reshape(-1, cout, cin), b))
         return params
 
     @staticmethod
