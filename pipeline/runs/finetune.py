@@ -62,7 +62,7 @@ def run(cfg: DictConfig) -> dict[str, float]:
     system = FinetuneSystem(
         model=meta["model"],
         weights=net.state_dict(),
-        loss=dict(cfg.loss),
+        loss=OmegaConf.to_container(cfg.loss, resolve=True),
         optimizer=instantiate(cfg.optim.optimizer),
         scheduler=instantiate(sched) if sched is not None else None,
         iiw_weight=float(ft.iiw_weight),
