@@ -114,3 +114,59 @@ def test_metallic_bce_is_the_binary_cross_entropy_and_corrects_confident_misses(
         assert torch.allclose(g, torch.full_like(g, float(expect)), rtol=1e-4)
     with pytest.raises(ValueError, match="loss.metallic"):
         MaterialLoss(metallic="focal")
+
+
+def test_released_perceptual_term_is_a_pooled_mask_l2_on_relu3_3_over_four_maps(tmp_path):
+    """The `paper` loss: VGG16 relu3_3 (features[:16]), sum (fx - fy)^2 m / sum m with the mask
+    average-pooled to the layer, raw inputs, weights 1, 1, 0.5, 0.5 on albedo, normal, roughness, metallic;
+    recomputed here from a plain torchvision VGG16 with the same (random) weights."""
+    from torchvision.models import vgg16
+
+    torch.manual_seed(0)
+    path = tmp_path / "vgg16.pth"
+    torch.save(vgg16(weights=None).state_dict(), path)
+    maps = {"albedo": 1.0, "normal": 1.0, "roughness": 0.5, "metallic": 0.5}
+    loss = MaterialLoss(
+        perceptual=0.01,
+        perceptual_weights=str(path),
+        perceptual_maps=maps,
+        perceptual_layers=["relu3_3"],
+        perceptual_distance="l2_masked",
+        perceptual_imagenet_norm=False,
+    )
+    b = _batch(H=16, W=24)
+    pred = {k: (v + 0.1 * torch.rand_like(v)) for k, v in b.items() if k in ("albedo", "normal", "material", "depth")}
+    _, terms = loss(pred, b)
+    net = vgg16(weights=None)
+    net.load_state_dict(torch.load(path, weights_only=True))
+    feats = net.features[:16].eval()
+    m = b["mask"].float()
+
+    def dist(x, y):
+        fx, fy = feats(x * m), feats(y * m)
+        k = (m.shape[-2] // fx.shape[-2], m.shape[-1] // fx.shape[-1])  # as released: loss.py:57-60
+        pooled = torch.nn.functional.avg_pool2d(m, k, k).expand_as(fx)
+        return ((fx - fy) ** 2 * pooled).sum() / pooled.sum()
+
+    rough = [x["material"][:, :1].expand(-1, 3, -1, -1) for x in (pred, b)]
+    metal = [x["material"][:, 1:].expand(-1, 3, -1, -1) for x in (pred, b)]
+    expect = (
+        dist(pred["albedo"], b["albedo"]) + dist(pred["normal"], b["normal"]) + 0.5 * dist(*rough) + 0.5 * dist(*metal)
+    )
+    assert torch.allclose(terms["perceptual"], expect, rtol=1e-4)
+    with pytest.raises(ValueError, match="perceptual_maps"):
+        MaterialLoss(perceptual_maps={"depth": 1.0})
+    with pytest.raises(ValueError, match="perceptual_layers"):
+        MaterialLoss(perceptual=0.01, perceptual_weights=str(path), perceptual_layers=["relu9_9"])
+
+
+def test_depth_loss_in_max_units_is_scale_free_and_names_bad_units():
+    from pipeline.systems.losses import depth_loss
+
+    b = _batch()
+    pred = b["depth"] * 0.37 + 0.05
+    a = depth_loss(pred, b["depth"], b["mask"], "max")
+    c = depth_loss(pred, b["depth"] * 10, b["mask"], "max")  # ground truth in other units: same target
+    assert torch.allclose(a, c, rtol=1e-5) and not torch.allclose(a, depth_loss(pred, b["depth"] * 10, b["mask"]))
+    with pytest.raises(ValueError, match="depth_units"):
+        depth_loss(pred, b["depth"], b["mask"], "feet")
