@@ -8,6 +8,7 @@ import mlflow
 import numpy as np
 import pytest
 import torch
+import yaml
 
 from tests.conftest import CONF, compose_cfg
 
@@ -32,12 +33,14 @@ def _cfg(shards, tmp, *extra):
     )
 
 
-@pytest.mark.parametrize("backbone", BACKBONES)
-def test_every_backbone_composes_and_takes_a_training_step(micro_shards, tmp_path, backbone):
+@pytest.mark.parametrize("option", BACKBONES)
+def test_every_backbone_composes_and_takes_a_training_step(micro_shards, tmp_path, option):
     from pipeline.runs.train_material import build_datamodule, build_system
 
-    cfg = _cfg(micro_shards, tmp_path, f"model/material_net={backbone}")
-    assert cfg.model.material_net.backbone == backbone
+    cfg = _cfg(micro_shards, tmp_path, f"model/material_net={option}")
+    preset = yaml.safe_load((CONF / "model" / "material_net" / f"{option}.yaml").read_text())
+    assert cfg.model.material_net.backbone == preset["backbone"]
+    assert cfg.model.material_net.layout == preset["layout"]
     system = build_system(cfg)
     dm = build_datamodule(cfg)
     batch = next(iter(dm.train_dataloader()))
