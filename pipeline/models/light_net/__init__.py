@@ -66,7 +66,9 @@ class LightNet(nn.Module):
     def encode(self, im: torch.Tensor, depth: torch.Tensor, fov_x) -> dict:
         """Per-image context: im (B, 3, H, W) HDR, depth (B, H, W) z-depth metres, fov_x float or (B,)."""
         ctx = {"scale": image_scale(im), "bounds": scene_bounds(depth, fov_x), "size": im.shape[-2:]}
-        ctx["depth_min"], ctx["depth_max"] = depth_range(depth)
+        sphere = self.out_of_view is not None and self.out_of_view.bounds == "sphere"
+        if self.gap_units == "window" or sphere:  # only these read the view's depth range
+            ctx["depth_min"], ctx["depth_max"] = depth_range(depth)
         if self.local is not None:
             ctx["local"] = self.local.encode(im)
             ctx["image"] = im.clamp(min=0) / ctx["scale"].view(-1, 1, 1, 1)
@@ -109,7 +111,7 @@ class LightNet(nn.Module):
                     origin[q],
                     wi[q],
                     generator,
-                    depth_max=ctx["depth_max"],
+                    depth_max=ctx.get("depth_max"),
                 ),
             )
         if self.mode == "out_of_view_only":

@@ -25,7 +25,7 @@ import torch
 from torch import nn
 from torch.nn import functional as F
 
-from pipeline.models.light_net.hyper import HyperMLP
+from pipeline.models.light_net.hyper import HyperMLP, mlp_stack
 from pipeline.models.material_net import ENCODERS, normalize_input
 from pipeline.ops.encodings import fourier, fourier_dim, random_fourier
 from pipeline.ops.volume import composite, ray_box, ray_sphere, stratified_edges
@@ -45,14 +45,6 @@ def image_scale(im: torch.Tensor) -> torch.Tensor:
 def _encoder(backbone: str) -> nn.Module:
     # group norm: LightNet often sees one image at a time (batch statistics would be degenerate)
     return ENCODERS[backbone](norm="group") if backbone == "small" else ENCODERS[backbone]()
-
-
-def _mlp(cin: int, hidden: int, layers: int, cout: int) -> nn.Sequential:
-    mods, c = [], cin
-    for _ in range(layers):
-        mods += [nn.Linear(c, hidden), nn.ReLU(inplace=True)]
-        c = hidden
-    return nn.Sequential(*mods, nn.Linear(c, cout))
 
 
 class SkipMLP(nn.Module):
@@ -135,7 +127,7 @@ class LocalBranch(nn.Module):
         else:
             enc_dim = fourier_dim(3, frequencies) + GBUFFER_DIM
         cin, cout = enc_dim + feat_dim + extra, 6 if extra else 3
-        self.mlp = SkipMLP(cin, hidden, layers, cout, skips) if skips else _mlp(cin, hidden, layers, cout)
+        self.mlp = SkipMLP(cin, hidden, layers, cout, skips) if skips else mlp_stack(cin, [hidden] * layers, cout)
         if self.pixel_base:
             with torch.no_grad():  # start near L = pixel: unit gain, a small additive term
                 self.mlp[-1].weight[:3].mul_(0.1)
@@ -218,7 +210,7 @@ class OutOfViewBranch(nn.Module):
         self.activation, self.pi_encoding = activation, bool(pi_encoding)
         sizes = [fourier_dim(3, frequencies)] + [nerf_hidden] * nerf_layers + [4]
         self.hyper = HyperMLP(feature_dim, sizes, **(hyper or {}))
-        self.far = _mlp(feature_dim + fourier_dim(3, dir_frequencies), 64, 2, 3) if far_field else None
+        self.far = mlp_stack(feature_dim + fourier_dim(3, dir_frequencies), [64, 64], 3) if far_field else None
 
     def encode(self, im: torch.Tensor) -> tuple[torch.Tensor, list]:
         feature = self.to_feature(self.encoder(normalize_input(im))[-1].mean(dim=(2, 3)))

@@ -11,7 +11,7 @@ from torch.nn import functional as F
 PARAM_ACTIVATIONS = ("none", "leaky_relu")
 
 
-def _stack(cin: int, widths, cout: int | None = None) -> nn.Sequential:
+def mlp_stack(cin: int, widths, cout: int | None = None) -> nn.Sequential:
     """Linear + ReLU per width, then an optional final Linear to `cout` (no activation)."""
     mods, c = [], cin
     for w in widths:
@@ -63,10 +63,10 @@ class HyperMLP(nn.Module):
             )
 
     def _emitter(self, feature_dim, trunk, head_hidden, outs, layers, with_w: bool):
-        body = _stack(feature_dim, trunk)
+        body = mlp_stack(feature_dim, trunk)
         heads = nn.ModuleList()
         for out, (cin, cout) in zip(outs, layers, strict=True):
-            head = _stack(trunk[-1], head_hidden, out)
+            head = mlp_stack(trunk[-1], head_hidden, out)
             last = head[-1]
             nn.init.normal_(last.weight, std=0.1 / math.sqrt(last.in_features))
             with torch.no_grad():  # bias = a fixed ordinary initialisation of the generated layer
