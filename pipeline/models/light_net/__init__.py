@@ -65,9 +65,11 @@ class LightNet(nn.Module):
 
     def encode(self, im: torch.Tensor, depth: torch.Tensor, fov_x) -> dict:
         """Per-image context: im (B, 3, H, W) HDR, depth (B, H, W) z-depth metres, fov_x float or (B,)."""
-        ctx = {"scale": image_scale(im), "bounds": scene_bounds(depth, fov_x), "size": im.shape[-2:]}
-        sphere = self.out_of_view is not None and self.out_of_view.bounds == "sphere"
-        if self.gap_units == "window" or sphere:  # only these read the view's depth range
+        ctx = {"scale": image_scale(im), "size": im.shape[-2:]}
+        bounds = self.out_of_view.bounds if self.out_of_view is not None else None
+        if bounds == "box":  # the context holds only what the configured branches read
+            ctx["bounds"] = scene_bounds(depth, fov_x)
+        if self.gap_units == "window" or bounds == "sphere":
             ctx["depth_min"], ctx["depth_max"] = depth_range(depth)
         if self.local is not None:
             ctx["local"] = self.local.encode(im)
@@ -106,7 +108,7 @@ class LightNet(nn.Module):
                     ctx["feature"],
                     ctx["params"],
                     ctx["scale"],
-                    ctx["bounds"],
+                    ctx.get("bounds"),
                     batch_index[q],
                     origin[q],
                     wi[q],
