@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import argparse
 import json
+import math
+import os
 import sys
 from pathlib import Path
 
@@ -86,6 +88,276 @@ def _predict(args) -> int:
     return 0
 
 
+class EditError(ValueError):
+    """A bad `insert` / `edit` argument; the message names it."""
+
+
+# materials of inserted objects: (albedo, roughness, metallic), the classes the `edit` stage scores
+OBJECT_MATERIALS = {
+    "mirror": ((0.95, 0.93, 0.88), 0.05, 1.0),
+    "glossy": ((0.7, 0.12, 0.1), 0.25, 0.0),
+    "diffuse": ((0.7, 0.7, 0.7), 0.9, 0.0),
+}
+DEFAULT_LIGHT = str(Path("outputs") / "train_lighting" / "model.pt")
+DEFAULT_MATERIAL = str(Path("outputs") / "train_material" / "model.pt")
+
+
+def _parse_floats(text: str, n: int, name: str) -> tuple[float, ...]:
+    try:
+        vals = tuple(float(v) for v in text.split(","))
+    except ValueError:
+        vals = ()
+    if len(vals) != n or not all(math.isfinite(v) for v in vals):
+        raise EditError(f"{name} {text!r}: expected {n} comma-separated numbers")
+    return vals
+
+
+def _output_paths(out: str | Path) -> tuple[Path, Path]:
+    """(PNG, EXR) paths of an --out FILE (.png or .exr); its folder must exist and be writable."""
+    out = Path(out)
+    if out.suffix.lower() not in (".png", ".exr"):
+        raise EditError(f"--out {out}: give a .png or .exr file name (both are written)")
+    if not out.parent.is_dir() or not os.access(out.parent, os.W_OK):
+        raise EditError(f"--out {out}: folder {out.parent} does not exist or is not writable")
+    return out.with_suffix(".png"), out.with_suffix(".exr")
+
+
+def _write_result(image, png: Path, exr: Path, hdr_input: bool) -> list[Path]:
+    """The composited (H, W, 3) linear image as EXR and as an sRGB PNG (an 8-bit input's own encoding;
+    an HDR input through the display tone map). Written to temporary names and renamed, so a failure
+    leaves neither file behind."""
+    import numpy as np
+    from PIL import Image
+
+    from pipeline.data.formats.exr import write_exr
+    from pipeline.data.formats.photo import linear_to_srgb
+    from pipeline.data.synth.figures import tonemap
+
+    tmp_png, tmp_exr = png.with_name(f".{png.name}.part"), exr.with_name(f".{exr.name}.part.exr")
+    try:
+        write_exr(tmp_exr, np.ascontiguousarray(image, np.float32))
+        display = tonemap(image) if hdr_input else linear_to_srgb(np.clip(image, 0, 1))
+        Image.fromarray(np.round(display * 255).astype(np.uint8)).save(tmp_png, format="PNG")
+        os.replace(tmp_exr, exr)
+        os.replace(tmp_png, png)
+    finally:
+        for t in (tmp_png, tmp_exr):
+            t.unlink(missing_ok=True)
+    return [png, exr]
+
+
+def _scene(photo: str | Path, material_path, light_path, fov: float):
+    """Read the photo and both exports (everything checked before any work) and predict the G-buffers:
+    (photo (H, W, 3), image (1, 3, H, W), G-buffers, LightNet, its context)."""
+    import numpy as np
+    import torch
+
+    from pipeline.data.formats.photo import read_linear
+    from pipeline.models.light_net import load_light_export
+    from pipeline.models.material_net import load_material_export, predict_maps
+
+    if not 1.0 <= fov <= 170.0:
+        raise EditError(f"--fov {fov}: must be a horizontal field of view in degrees (1-170)")
+    material_net, meta = load_material_export(material_path)
+    light_net, _ = load_light_export(light_path)
+    im = read_linear(photo)
+    if min(im.shape[:2]) < 8 or max(im.shape[:2]) > 4096:
+        raise EditError(f"{photo}: {im.shape[1]}x{im.shape[0]} pixels; insert/edit take 8 to 4096 pixels a side")
+    if float(im.mean()) <= 0:
+        raise EditError(f"{photo}: the image is black; there is no light to estimate")
+    maps = predict_maps(material_net, meta, im)
+
+    def chw(a):
+        return torch.from_numpy(np.ascontiguousarray(a)).float().permute(2, 0, 1)[None]
+
+    gb = {
+        "depth": torch.from_numpy(maps["depth"] / 1000.0).float()[None],
+        "normal": chw(maps["normal"]),
+        "albedo": chw(maps["albedo"]),
+        "material": chw(maps["material"][..., :2]),
+    }
+    image = chw(im)
+    with torch.no_grad():
+        ctx = light_net.eval().encode(image, gb["depth"], fov)
+    return torch.from_numpy(im), image, gb, light_net, ctx
+
+
+def insert_object(
+    photo,
+    at: str,
+    out,
+    kind: str = "sphere",
+    material: str = "mirror",
+    radius: float | None = None,
+    fov: float = 70.0,
+    spp: int = 64,
+    seed: int = 0,
+    material_path=DEFAULT_MATERIAL,
+    light_path=DEFAULT_LIGHT,
+) -> list[Path]:
+    """`invrender insert`: an object resting on the predicted surface at pixel `at` ("row,col"), lit by
+    LightNet through the MC render layer, composited into the photo; writes <out>.png and <out>.exr."""
+    import torch
+
+    from pipeline.models.insertion import composite_image, light_net_radiance, object_gbuffer, render_case
+    from pipeline.models.render_layer import MCRenderLayer
+    from pipeline.ops.camera import backproject
+    from pipeline.ops.primitives import object_spheres
+
+    png, exr = _output_paths(out)
+    if kind not in ("sphere", "snowman"):
+        raise EditError(f"--object {kind!r}: choose sphere or snowman")
+    if material not in OBJECT_MATERIALS:
+        raise EditError(f"--material {material!r}: choose one of {sorted(OBJECT_MATERIALS)}")
+    if spp < 1:
+        raise EditError(f"--spp {spp}: must be >= 1")
+    row, col = (int(v) for v in _parse_floats(at, 2, "--at"))
+    photo_t, image, gb, net, ctx = _scene(photo, material_path, light_path, fov)
+    H, W = photo_t.shape[:2]
+    if not (0 <= row < H and 0 <= col < W):
+        raise EditError(f"--at {at}: pixel (row {row}, col {col}) is outside the {W}x{H} image")
+    point = backproject(gb["depth"], fov)[0, row, col]
+    z = float(gb["depth"][0, row, col])
+    if not math.isfinite(z) or z <= 0:
+        raise EditError(f"--at {at}: no valid surface at that pixel (predicted depth {z})")
+    n = torch.nn.functional.normalize(gb["normal"][0, :, row, col], dim=0)
+    f = (W / 2) / math.tan(math.radians(fov) / 2)
+    r = float(radius) if radius is not None else z * (W / 16) / f
+    if not 0 < r < 10 * z:
+        raise EditError(f"--radius {radius}: must be positive and at most 10x the depth there ({z:.2f} m)")
+    spheres = object_spheres(kind, point, n, r)  # resting on the predicted surface, up = its normal
+    obj = object_gbuffer(spheres, gb["depth"][0], fov)
+    if obj is None:
+        raise EditError(f"--at {at}: the object would not be visible (it lies behind the scene or outside the view)")
+    albedo, rough, metal = OBJECT_MATERIALS[material]
+    M = len(obj["pixel"])
+    values = {
+        "albedo": torch.tensor(albedo).expand(M, 3),
+        "material": torch.tensor([rough, metal]).expand(M, 2),
+        "normal": obj["normal"].float(),
+        "depth": obj["depth"].float(),
+    }
+    from pipeline.models.insertion import composite_gbuffer
+
+    shading = composite_gbuffer(gb, obj["pixel"], **values)
+    with torch.no_grad():
+        rgb = render_case(
+            MCRenderLayer(spp=spp), shading, fov, obj["pixel"], light_net_radiance(net, ctx, gb, fov, seed), seed
+        )
+    result = composite_image(photo_t, obj["pixel"], rgb).numpy()
+    return _write_result(result, png, exr, Path(photo).suffix.lower() == ".exr")
+
+
+def edit_material(
+    photo,
+    mask,
+    out,
+    roughness: float | None = None,
+    metallic: float | None = None,
+    albedo: str | None = None,
+    fov: float = 70.0,
+    spp: int = 64,
+    seed: int = 0,
+    material_path=DEFAULT_MATERIAL,
+    light_path=DEFAULT_LIGHT,
+) -> list[Path]:
+    """`invrender edit`: the masked region's material replaced (the given fields; the predicted ones
+    elsewhere), re-rendered under LightNet and composited into the photo; writes <out>.png and <out>.exr."""
+    import numpy as np
+    import torch
+    from PIL import Image, UnidentifiedImageError
+
+    from pipeline.models.insertion import composite_gbuffer, composite_image, light_net_radiance, render_case
+    from pipeline.models.render_layer import MCRenderLayer
+
+    png, exr = _output_paths(out)
+    if roughness is None and metallic is None and albedo is None:
+        raise EditError("edit: give at least one of --roughness, --metallic, --albedo")
+    for name, v in (("--roughness", roughness), ("--metallic", metallic)):
+        if v is not None and not 0.0 <= v <= 1.0:
+            raise EditError(f"{name} {v}: must be in [0, 1]")
+    rgb_albedo = _parse_floats(albedo, 3, "--albedo") if albedo is not None else None
+    if rgb_albedo is not None and not all(0.0 <= v <= 1.0 for v in rgb_albedo):
+        raise EditError(f"--albedo {albedo}: each channel must be in [0, 1] (linear base colour)")
+    if spp < 1:
+        raise EditError(f"--spp {spp}: must be >= 1")
+    mask_path = Path(mask)
+    if not mask_path.is_file():
+        raise EditError(f"--mask {mask}: no such file")
+    try:
+        with Image.open(mask_path) as img:
+            m = np.asarray(img.convert("L"), np.float32) / 255.0
+    except (UnidentifiedImageError, OSError) as exc:
+        raise EditError(f"--mask {mask}: cannot decode image ({exc})") from exc
+    photo_t, image, gb, net, ctx = _scene(photo, material_path, light_path, fov)
+    H, W = photo_t.shape[:2]
+    if m.shape != (H, W):
+        raise EditError(f"--mask {mask}: {m.shape[1]}x{m.shape[0]} pixels, the photo is {W}x{H}")
+    pixels = torch.from_numpy(np.flatnonzero(m.reshape(-1) > 0.5))
+    if not len(pixels):
+        raise EditError(f"--mask {mask}: selects no pixel (white = edit)")
+    alb = gb["albedo"][0].reshape(3, -1)[:, pixels].T.clone()
+    mat = gb["material"][0].reshape(2, -1)[:, pixels].T.clone()
+    if rgb_albedo is not None:
+        alb[:] = torch.tensor(rgb_albedo)
+    if roughness is not None:
+        mat[:, 0] = roughness
+    if metallic is not None:
+        mat[:, 1] = metallic
+    shading = composite_gbuffer(gb, pixels, albedo=alb, material=mat)
+    with torch.no_grad():
+        rgb = render_case(
+            MCRenderLayer(spp=spp), shading, fov, pixels, light_net_radiance(net, ctx, gb, fov, seed), seed
+        )
+    result = composite_image(photo_t, pixels, rgb).numpy()
+    return _write_result(result, png, exr, Path(photo).suffix.lower() == ".exr")
+
+
+def _insert(args) -> int:
+    for path in insert_object(
+        args.photo,
+        args.at,
+        args.out,
+        args.object,
+        args.material,
+        args.radius,
+        args.fov,
+        args.spp,
+        args.seed,
+        args.material_net,
+        args.light_net,
+    ):
+        print(path)
+    return 0
+
+
+def _edit(args) -> int:
+    for path in edit_material(
+        args.photo,
+        args.mask,
+        args.out,
+        args.roughness,
+        args.metallic,
+        args.albedo,
+        args.fov,
+        args.spp,
+        args.seed,
+        args.material_net,
+        args.light_net,
+    ):
+        print(path)
+    return 0
+
+
+def _add_render_args(p) -> None:
+    p.add_argument("--out", required=True, help="output .png or .exr (both are written)")
+    p.add_argument("--fov", type=float, default=70.0, help="horizontal field of view in degrees (default %(default)s)")
+    p.add_argument("--spp", type=int, default=64, help="render-layer samples per pixel (default %(default)s)")
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--material-net", default=DEFAULT_MATERIAL, help="MaterialNet export (default: %(default)s)")
+    p.add_argument("--light-net", default=DEFAULT_LIGHT, help="LightNet export (default: %(default)s)")
+
+
 def _whdr(args) -> int:
     from pipeline.data import iiw
     from pipeline.data.formats.photo import srgb_to_linear
@@ -133,6 +405,22 @@ def main(argv: list[str] | None = None) -> int:
     w.add_argument("--linear", action="store_true", help="the PNG holds linear reflectance: score it as read")
     w.add_argument("--delta", type=float, default=0.1)
     w.set_defaults(func=_whdr)
+    i = sub.add_parser("insert", help="insert an object lit by LightNet into a photo (EXR linear, PNG/JPG sRGB)")
+    i.add_argument("photo")
+    i.add_argument("--at", required=True, help="ROW,COL: the pixel whose predicted surface the object rests on")
+    i.add_argument("--object", default="sphere", choices=("sphere", "snowman"))
+    i.add_argument("--material", default="mirror", choices=sorted(OBJECT_MATERIALS))
+    i.add_argument("--radius", type=float, default=None, help="object size in metres (default: 1/16 of the view)")
+    _add_render_args(i)
+    i.set_defaults(func=_insert)
+    e = sub.add_parser("edit", help="give a masked region another material, re-rendered under LightNet")
+    e.add_argument("photo")
+    e.add_argument("--mask", required=True, help="PNG of the photo's size, white = the region to edit")
+    e.add_argument("--roughness", type=float, default=None)
+    e.add_argument("--metallic", type=float, default=None)
+    e.add_argument("--albedo", default=None, help="R,G,B linear base colour in [0, 1]")
+    _add_render_args(e)
+    e.set_defaults(func=_edit)
     args = parser.parse_args(argv)
     from pipeline.data.formats.photo import PhotoError
     from pipeline.data.iiw import IIWError
@@ -141,7 +429,7 @@ def main(argv: list[str] | None = None) -> int:
 
     try:
         return args.func(args)
-    except (DatasetError, PhotoError, ExportError, IIWError) as exc:
+    except (DatasetError, PhotoError, ExportError, IIWError, EditError) as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 2
 

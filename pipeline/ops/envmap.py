@@ -49,13 +49,31 @@ def hemisphere_lookup(
     radiance (P, rows, cols, 3) probes; probe (K,) long, the probe of each query; normal (K, 3) its unit
     normal; wi (K, 3) unit query directions. Returns (K, 3): exact at texel centres, bilinear between
     them, periodic in phi, clamped in theta (directions below the horizon read the last row)."""
-    _, rows, cols, _ = radiance.shape
-    flat = radiance.reshape(-1, 3)
     t, bt = orthonormal_basis(normal)
     x, y, z = to_local(wi, t, bt, normal).unbind(-1)
     theta = torch.atan2(torch.sqrt(x * x + y * y), z).clamp(0, math.pi / 2)
     phi = torch.atan2(y, x) % (2 * math.pi)
-    a = (theta / (math.pi / 2) * rows - 0.5).clamp(0, rows - 1)
+    return _bilinear(radiance, probe, theta / (math.pi / 2), phi)
+
+
+def sphere_lookup(radiance: torch.Tensor, probe: torch.Tensor, wi: torch.Tensor) -> torch.Tensor:
+    """Bilinear lookup in full-sphere maps laid out by `sphere_directions` (texel centres at
+    theta = (a + .5)/rows * pi from +y, phi = (b + .5)/cols * 2 pi from -z towards +x).
+
+    radiance (P, rows, cols, 3); probe (K,) long; wi (K, 3) unit view-space directions. Returns (K, 3):
+    exact at texel centres, periodic in phi, clamped in theta at the poles' first and last rows."""
+    x, y, z = wi.unbind(-1)
+    theta = torch.acos(y.clamp(-1, 1))
+    phi = torch.atan2(x, -z) % (2 * math.pi)
+    return _bilinear(radiance, probe, theta / math.pi, phi)
+
+
+def _bilinear(radiance: torch.Tensor, probe: torch.Tensor, v: torch.Tensor, phi: torch.Tensor) -> torch.Tensor:
+    """Bilinear read of maps (P, rows, cols, 3) at row coordinate v in [0, 1] (texel centres at
+    (a + .5)/rows, clamped at the first and last rows) and azimuth phi in [0, 2 pi) (periodic)."""
+    _, rows, cols, _ = radiance.shape
+    flat = radiance.reshape(-1, 3)
+    a = (v * rows - 0.5).clamp(0, rows - 1)
     b = phi / (2 * math.pi) * cols - 0.5
     a0, b0 = a.floor(), b.floor()
     fa, fb = (a - a0)[:, None], (b - b0)[:, None]

@@ -13,7 +13,7 @@ from pipeline.data.synth.figures import contact_sheet
 from pipeline.data.synth.generate import SynthConfig, synthesize
 from pipeline.tracking import publish, stage_run
 
-PHASES = ("build", "camera", "gbuffer", "render", "lighting", "write")
+PHASES = ("build", "camera", "gbuffer", "render", "lighting", "cases", "write")
 
 
 def synthesize_metrics(summary: dict) -> tuple[dict[str, float], dict[str, float]]:
@@ -33,6 +33,8 @@ def synthesize_metrics(summary: dict) -> tuple[dict[str, float], dict[str, float
         "valid_pixel_fraction": float(np.mean([f for s in scenes for f in s["valid_fraction"]])),
         "surface_probes": sum(s["surface_probes"] for s in scenes),
         "free_probes": sum(s["free_probes"] for s in scenes),
+        "insertion_cases": sum(s.get("insertion_cases", 0) for s in scenes),
+        "edit_cases": sum(s.get("edit_cases", 0) for s in scenes),
         "scenes_with_window": sum(s["windows"] > 0 for s in scenes),
         "llvm_variant": int(summary["variant"].startswith("llvm")),
         **{f"split_{k}_scenes": v for k, v in summary["splits"].items()},

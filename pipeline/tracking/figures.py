@@ -170,3 +170,46 @@ def envmap_comparison(rows: list[dict], path: str | Path, title: str = "") -> Pa
     for ax, name in zip(axes[0], cols, strict=True):
         ax.set_title(name, fontsize=8)
     return save(fig, path, title)
+
+
+def _crop_box(pixels: np.ndarray, height: int, width: int, min_side: int = 24) -> tuple[slice, slice]:
+    """A square-ish window around flat pixels, 1.6x their extent and at least min_side, inside the image."""
+    rows, cols = np.divmod(pixels, width)
+    side = int(max(min_side, 1.6 * max(rows.max() - rows.min() + 1, cols.max() - cols.min() + 1)))
+    side = min(side, height, width)
+    r0 = int(np.clip((rows.min() + rows.max()) // 2 - side // 2, 0, height - side))
+    c0 = int(np.clip((cols.min() + cols.max()) // 2 - side // 2, 0, width - side))
+    return slice(r0, r0 + side), slice(c0, c0 + side)
+
+
+def insertion_grid(panels: list[dict], path: str | Path, title: str = "") -> Path:
+    """One row per case: the input photo (the case's window boxed), then zoomed crops of the ground truth
+    and of each row's composite (PSNR on the case's pixels below), and |LightNet - ground truth| in units
+    of the photo's mean. panels: {"label", "photo", "gt" (H, W, 3) HDR, "rows": {name: (H, W, 3)},
+    "psnr": {name: dB}, "pixels" (M,) flat, "scale": the photo's mean}. A row shares the photo's exposure."""
+    names = list(panels[0]["rows"])
+    cols = ["input", "ground truth", *names, "|LightNet - truth|"]
+    fig, axes = plt.subplots(len(panels), len(cols), figsize=(1.55 * len(cols), 1.6 * len(panels)), squeeze=False)
+    for row, p in zip(axes, panels, strict=True):
+        H, W = p["photo"].shape[:2]
+        exposure = _input_exposure(p["photo"])
+        rs, cs = _crop_box(p["pixels"], H, W)
+        row[0].imshow(tonemap(p["gt"], exposure))
+        row[0].add_patch(
+            plt.Rectangle(
+                (cs.start - 0.5, rs.start - 0.5), cs.stop - cs.start, rs.stop - rs.start, fill=False, ec="cyan"
+            )
+        )
+        images = [p["gt"], *(p["rows"][n] for n in names)]
+        for ax, img in zip(row[1 : 2 + len(names)], images, strict=True):
+            ax.imshow(tonemap(img[rs, cs], exposure), interpolation="nearest")
+        for ax, n in zip(row[2 : 2 + len(names)], names, strict=True):
+            ax.set_xlabel(f"{p['psnr'][n]:.1f} dB", fontsize=6, labelpad=1)
+        err = np.abs(p["rows"][names[0]] - p["gt"]).mean(-1) / p["scale"]
+        row[-1].imshow(np.clip(err[rs, cs], 0, 1), cmap="magma", vmin=0, vmax=1, interpolation="nearest")
+        for ax in row:
+            ax.set_xticks([]), ax.set_yticks([])
+        row[0].set_ylabel(p["label"], fontsize=5)
+    for ax, name in zip(axes[0], cols, strict=True):
+        ax.set_title(name.replace("_", " "), fontsize=6)
+    return save(fig, path, title)

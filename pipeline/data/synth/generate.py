@@ -18,8 +18,10 @@ from pathlib import Path
 import numpy as np
 from tqdm import tqdm
 
+from pipeline.data import cases as case_io
 from pipeline.data import interiorverse as iv
 from pipeline.data.synth import mitsuba_backend as mb
+from pipeline.data.synth.cases import CaseConfig, generate_cases
 from pipeline.data.synth.denoise import denoise_hdr
 from pipeline.data.synth.scene import RoomConfig, generate_room, propose_camera
 from pipeline.data.synth.views import LightingConfig, Timer, camera_is_usable, gbuffer, lighting_probes
@@ -42,16 +44,22 @@ class SynthConfig:
     workers: int = 0  # 0 = one per core
     room: RoomConfig = field(default_factory=RoomConfig)
     lighting: LightingConfig = field(default_factory=LightingConfig)
+    cases: CaseConfig = field(default_factory=CaseConfig)
 
     @staticmethod
     def from_dict(d: dict) -> SynthConfig:
         d = dict(d)
         room = RoomConfig(**{k: tuple(v) if isinstance(v, list) else v for k, v in d.pop("room", {}).items()})
         light = LightingConfig(**{k: tuple(v) if isinstance(v, list) else v for k, v in d.pop("lighting", {}).items()})
+        case_keys = d.pop("cases", {})
+        bad = set(case_keys) - set(CaseConfig.__dataclass_fields__)
+        if bad:
+            raise ValueError(f"synth.cases: unknown key(s) {sorted(bad)}")
+        cases = CaseConfig(**{k: tuple(v) if isinstance(v, list) else v for k, v in case_keys.items()})
         unknown = set(d) - set(SynthConfig.__dataclass_fields__)
         if unknown:
             raise ValueError(f"synth: unknown key(s) {sorted(unknown)}")
-        return SynthConfig(**d, room=room, lighting=light)
+        return SynthConfig(**d, room=room, lighting=light, cases=cases)
 
 
 def scene_name(index: int) -> str:
@@ -80,8 +88,11 @@ def assign_splits(n: int, fractions: dict, seed: int) -> dict[str, list[str]]:
     }
 
 
-def render_scene(index: int, seed: int, cfg: SynthConfig, out: str, variant: str, threads: int) -> dict:
-    """Generate, render and write one scene (runs in a worker process). Returns per-scene statistics."""
+def render_scene(
+    index: int, seed: int, cfg: SynthConfig, out: str, variant: str, threads: int, with_cases: bool = False
+) -> dict:
+    """Generate, render and write one scene (runs in a worker process); with_cases (val and test scenes)
+    also draws and renders its insertion and editing cases. Returns per-scene statistics."""
     mb.init_mitsuba(variant, threads)
     timer = Timer()
     s_seed = scene_seed(seed, index)
@@ -98,7 +109,7 @@ def render_scene(index: int, seed: int, cfg: SynthConfig, out: str, variant: str
                 cam = propose_camera(room, rng, cfg.room, footprints)
                 redraws += 1
         room.cameras[v] = cam
-    cameras, valid_fraction, n_surf, n_free = {}, [], 0, 0
+    cameras, valid_fraction, n_surf, n_free, n_obj, n_edit = {}, [], 0, 0, 0, 0
     for v, cam in enumerate(room.cameras):
         view = f"{v:03d}"
         with timer("gbuffer"):
@@ -113,6 +124,15 @@ def render_scene(index: int, seed: int, cfg: SynthConfig, out: str, variant: str
         with timer("write"):
             iv.write_view(out, name, view, {"im": im, **gb}, half=cfg.half_float)
             iv.write_light(out, name, view, light)
+        if with_cases and cfg.cases.enabled:
+            with timer("cases"):
+                # their own generator: adding or changing cases never moves the room's random numbers
+                case_rng = np.random.default_rng([s_seed, v, 0xCA5E])
+                cases, arrays = generate_cases(
+                    room, scene, cam, gb, cfg.cases, case_rng, s_seed * 64 + v, cfg.max_depth
+                )
+                case_io.write_cases(out, name, view, cases.to_json(), arrays)
+            n_obj, n_edit = n_obj + len(cases.objects), n_edit + len(cases.edits)
         cameras[view] = {
             "fov_x_deg": cam.fov_x_deg,
             "width": cfg.width,
@@ -132,6 +152,8 @@ def render_scene(index: int, seed: int, cfg: SynthConfig, out: str, variant: str
         "valid_fraction": valid_fraction,
         "surface_probes": n_surf,
         "free_probes": n_free,
+        "insertion_cases": n_obj,
+        "edit_cases": n_edit,
         "shapes": len(room.shapes),
         "windows": len(room.windows),
         "lamps": sum(s.role == "lamp" for s in room.shapes),
@@ -167,7 +189,11 @@ def synthesize(cfg: SynthConfig, out: str | Path, seed: int, progress: bool = Tr
     results = []
     bar = tqdm(total=cfg.scenes, desc=f"synthesize ({variant}, {workers} workers)", unit="scene", disable=not progress)
     with ProcessPoolExecutor(workers, mp_context=get_context("spawn")) as pool:  # variant is per process
-        futures = [pool.submit(render_scene, i, seed, cfg, str(out), variant, threads) for i in range(cfg.scenes)]
+        with_cases = set(splits["val"]) | set(splits["test"])
+        futures = [
+            pool.submit(render_scene, i, seed, cfg, str(out), variant, threads, scene_name(i) in with_cases)
+            for i in range(cfg.scenes)
+        ]
         for fut in as_completed(futures):
             results.append(fut.result())
             bar.update(1)

@@ -68,7 +68,7 @@ def pattern_levels(spec: dict) -> np.ndarray:
     raise ValueError(f"unknown texture pattern {kind!r} (choose from {PATTERNS})")
 
 
-def _hsv_colour(rng, hue, sat, val) -> list[float]:
+def hsv_colour(rng, hue, sat, val) -> list[float]:
     """A linear RGB colour from hue/saturation/value ranges (value is the linear max channel)."""
     h, s, v = rng.uniform(*hue) % 1.0, rng.uniform(*sat), rng.uniform(*val)
     k = (np.array([5.0, 3.0, 1.0]) + h * 6) % 6
@@ -76,13 +76,13 @@ def _hsv_colour(rng, hue, sat, val) -> list[float]:
     return np.clip(rgb, 0.0, 1.0).tolist()
 
 
-def _metal_colour(rng) -> list[float]:
+def metal_colour(rng) -> list[float]:
     """Base colour (= normal-incidence reflectance F0) of a real metal: bright, as measured F0 of common
     metals lies between about 0.5 (iron) and 0.97 (silver); neutral (steel, aluminium, chrome) or warm
     (gold, copper, brass). A dark or saturated green 'metal' does not exist and only blurs the cue."""
     if rng.uniform() < 0.7:
-        return _hsv_colour(rng, (0.0, 1.0), (0.0, 0.12), (0.5, 0.97))
-    return _hsv_colour(rng, (0.03, 0.14), (0.25, 0.7), (0.6, 0.95))
+        return hsv_colour(rng, (0.0, 1.0), (0.0, 0.12), (0.5, 0.97))
+    return hsv_colour(rng, (0.03, 0.14), (0.25, 0.7), (0.6, 0.95))
 
 
 def _texture(rng, albedo2, roughness2=None, patterns=PATTERNS) -> dict:
@@ -118,24 +118,24 @@ def _furniture_material(rng, kind: str | None, u: float) -> Material:
     which = names[min(int(np.searchsorted(np.cumsum(probs), u, side="right")), len(names) - 1)]
     role = "furniture"
     if which == "wood":
-        base = _hsv_colour(rng, (0.05, 0.1), (0.4, 0.8), (0.1, 0.5))
-        other = _hsv_colour(rng, (0.04, 0.1), (0.4, 0.8), (0.05, 0.35))
+        base = hsv_colour(rng, (0.05, 0.1), (0.4, 0.8), (0.1, 0.5))
+        other = hsv_colour(rng, (0.04, 0.1), (0.4, 0.8), (0.05, 0.35))
         return Material(
             role, base, float(rng.uniform(0.3, 0.7)), 0.0, _texture(rng, other, None, ("planks", "stripes"))
         )
     if which == "metal":
-        return Material(role, _metal_colour(rng), float(rng.uniform(0.05, 0.5)), 1.0)
+        return Material(role, metal_colour(rng), float(rng.uniform(0.05, 0.5)), 1.0)
     if which == "lacquer":  # glossy plastic / lacquer
-        return Material(role, _hsv_colour(rng, (0.0, 1.0), (0.3, 0.9), (0.1, 0.8)), float(rng.uniform(0.05, 0.2)), 0.0)
+        return Material(role, hsv_colour(rng, (0.0, 1.0), (0.3, 0.9), (0.1, 0.8)), float(rng.uniform(0.05, 0.2)), 0.0)
     if which == "fabric":  # patterned upholstery
-        base = _hsv_colour(rng, (0.0, 1.0), (0.2, 0.8), (0.1, 0.7))
-        other = _hsv_colour(rng, (0.0, 1.0), (0.2, 0.8), (0.1, 0.7))
+        base = hsv_colour(rng, (0.0, 1.0), (0.2, 0.8), (0.1, 0.7))
+        other = hsv_colour(rng, (0.0, 1.0), (0.2, 0.8), (0.1, 0.7))
         return Material(
             role, base, float(rng.uniform(0.85, 1.0)), 0.0, _texture(rng, other, None, ("checker", "blotches"))
         )
     if which == "leather":
-        return Material(role, _hsv_colour(rng, (0.0, 0.12), (0.3, 0.8), (0.03, 0.4)), float(rng.uniform(0.3, 0.6)), 0.0)
-    return Material(role, _hsv_colour(rng, (0.0, 1.0), (0.0, 0.8), (0.05, 0.9)), float(rng.uniform(0.2, 1.0)), 0.0)
+        return Material(role, hsv_colour(rng, (0.0, 0.12), (0.3, 0.8), (0.03, 0.4)), float(rng.uniform(0.3, 0.6)), 0.0)
+    return Material(role, hsv_colour(rng, (0.0, 1.0), (0.0, 0.8), (0.05, 0.9)), float(rng.uniform(0.2, 1.0)), 0.0)
 
 
 def random_material(rng: np.random.Generator, role: str, kind: str | None = None) -> Material:
@@ -146,17 +146,17 @@ def random_material(rng: np.random.Generator, role: str, kind: str | None = None
     """
     u = rng.uniform()
     if role == "floor":
-        base = _hsv_colour(rng, (0.05, 0.12), (0.3, 0.7), (0.15, 0.6))
+        base = hsv_colour(rng, (0.05, 0.12), (0.3, 0.7), (0.15, 0.6))
         rough = float(rng.uniform(0.05, 0.5))  # glossy floors are common indoors
         if u < 0.65:
-            other = _hsv_colour(rng, (0.0, 0.15), (0.2, 0.6), (0.05, 0.5))
+            other = hsv_colour(rng, (0.0, 0.15), (0.2, 0.6), (0.05, 0.5))
             rough2 = float(rng.uniform(0.4, 0.9)) if rng.uniform() < 0.4 else None
             return Material(role, base, rough, 0.0, _texture(rng, other, rough2, ("checker", "planks")))
         return Material(role, base, rough, 0.0)
     if role == "wall":
-        base = _hsv_colour(rng, (0.0, 1.0), (0.0, 0.35), (0.35, 0.85))
+        base = hsv_colour(rng, (0.0, 1.0), (0.0, 0.35), (0.35, 0.85))
         if u < 0.2:
-            other = _hsv_colour(rng, (0.0, 1.0), (0.0, 0.4), (0.3, 0.8))
+            other = hsv_colour(rng, (0.0, 1.0), (0.0, 0.4), (0.3, 0.8))
             return Material(role, base, float(rng.uniform(0.6, 1.0)), 0.0, _texture(rng, other, None, ("stripes",)))
         return Material(role, base, float(rng.uniform(0.5, 1.0)), 0.0)
     if role == "ceiling":
@@ -164,8 +164,8 @@ def random_material(rng: np.random.Generator, role: str, kind: str | None = None
     if role == "mirror":
         return Material(role, [float(rng.uniform(0.88, 0.96))] * 3, 0.02, 1.0)
     if role == "picture":  # poster / painting: a high-contrast pattern of two unrelated colours
-        base = _hsv_colour(rng, (0.0, 1.0), (0.2, 0.9), (0.3, 0.9))
-        other = _hsv_colour(rng, (0.0, 1.0), (0.3, 1.0), (0.02, 0.4))
+        base = hsv_colour(rng, (0.0, 1.0), (0.2, 0.9), (0.3, 0.9))
+        other = hsv_colour(rng, (0.0, 1.0), (0.3, 1.0), (0.02, 0.4))
         return Material(
             role,
             base,
@@ -179,8 +179,8 @@ def random_material(rng: np.random.Generator, role: str, kind: str | None = None
         return _furniture_material(rng, kind, u)
     if role == "object":
         if u < 0.35:  # solid metal
-            return Material(role, _metal_colour(rng), float(np.exp(rng.uniform(np.log(0.02), np.log(0.6)))), 1.0)
+            return Material(role, metal_colour(rng), float(np.exp(rng.uniform(np.log(0.02), np.log(0.6)))), 1.0)
         rough = float(np.exp(rng.uniform(np.log(0.02), np.log(1.0))))  # log-uniform: many glossy ones
         metallic = float(rng.uniform(0.0, 1.0)) if u < 0.45 else 0.0  # a few painted/worn metal blends
-        return Material(role, _hsv_colour(rng, (0.0, 1.0), (0.0, 0.9), (0.05, 0.95)), rough, metallic)
+        return Material(role, hsv_colour(rng, (0.0, 1.0), (0.0, 0.9), (0.05, 0.95)), rough, metallic)
     raise ValueError(f"unknown material role {role!r}")

@@ -1,0 +1,123 @@
+"""Insertion and editing cases of a view (`<view>_cases.json` + `<view>_cases.npz`), typed and checked.
+
+Written by `synthesize` (`pipeline.data.synth.cases`) for val and test views; read by the `edit` stage
+and the tests. Pixels are flat indices into the view's (H, W) grid (row-major); positions and normals
+are in the view space of DESIGN.md section 3; depth is z-depth in metres; radiance is HDR, the mean of
+`spp` path samples through the pixel centre, with its standard error.
+"""
+
+from __future__ import annotations
+
+import json
+import zipfile
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from pipeline.data.interiorverse import DatasetError
+
+OBJECT_ARRAYS = {"pixel": 1, "albedo": 2, "normal": 2, "depth_m": 1, "material": 2, "radiance": 2, "stderr": 2}
+EDIT_ARRAYS = {"pixel": 1, "albedo": 2, "material": 2, "radiance": 2, "stderr": 2}
+
+
+@dataclass
+class Case:
+    """One insertion or edit. description: its JSON entry; pixel (M,) long flat indices; albedo (M, 3),
+    material (M, 2) roughness+metallic; normal (M, 3) and depth (M,) metres for objects (None for edits,
+    which keep the view's geometry); radiance, stderr (M, 3) the Mitsuba ground truth."""
+
+    kind: str  # object | edit
+    index: int
+    description: dict
+    pixel: torch.Tensor
+    albedo: torch.Tensor
+    material: torch.Tensor
+    radiance: torch.Tensor
+    stderr: torch.Tensor
+    normal: torch.Tensor | None = None
+    depth: torch.Tensor | None = None
+
+    @property
+    def label(self) -> str:
+        """The class it is scored in: the object's material class, or the edit's kind."""
+        d = self.description
+        return d["material_class"] if self.kind == "object" else d["kind"]
+
+    @property
+    def name(self) -> str:
+        return f"{self.kind}{self.index}"
+
+
+def paths(root: str | Path, scene: str, view: str) -> tuple[Path, Path]:
+    base = Path(root) / scene
+    return base / f"{view}_cases.json", base / f"{view}_cases.npz"
+
+
+def write_cases(root: str | Path, scene: str, view: str, description: dict, arrays: dict[str, np.ndarray]) -> None:
+    js, npz = paths(root, scene, view)
+    js.write_text(json.dumps(description, indent=1))
+    np.savez_compressed(npz, **{k: np.ascontiguousarray(v) for k, v in arrays.items()})
+
+
+def has_cases(root: str | Path, scene: str, view: str) -> bool:
+    return paths(root, scene, view)[0].is_file()
+
+
+def read_cases(root: str | Path, scene: str, view: str, height: int, width: int) -> list[Case]:
+    """Every case of a view, checked: both files present and readable, every array of every listed case
+    present with matching lengths and finite values, pixels inside the (height, width) view."""
+    js, npz = paths(root, scene, view)
+    for p in (js, npz):
+        if not p.is_file():
+            raise DatasetError(f"{p}: missing (run synthesize with synth.cases.enabled=true)")
+    try:
+        desc = json.loads(js.read_text())
+    except json.JSONDecodeError as exc:
+        raise DatasetError(f"{js}: not valid JSON ({exc})") from exc
+    try:
+        with np.load(npz, allow_pickle=False) as z:
+            arrays = {k: z[k] for k in z.files}
+    except (OSError, ValueError, zipfile.BadZipFile, EOFError) as exc:
+        raise DatasetError(f"{npz}: cannot read case arrays ({exc})") from exc
+    size = arrays.get("size")
+    if size is None or tuple(int(s) for s in size) != (height, width):
+        raise DatasetError(
+            f"{npz}: cases were rendered at {None if size is None else tuple(size)}, view is {(height, width)}"
+        )
+    out = []
+    for kind, entries, spec in (
+        ("object", desc.get("objects", []), OBJECT_ARRAYS),
+        ("edit", desc.get("edits", []), EDIT_ARRAYS),
+    ):
+        for i, entry in enumerate(entries):
+            a = {}
+            for key, ndim in spec.items():
+                full = f"{kind}{i}_{key}"
+                if full not in arrays:
+                    raise DatasetError(f"{npz}: lacks {full!r} for {kind} {i} of {js.name}")
+                a[key] = arrays[full]
+                if a[key].ndim != ndim or len(a[key]) != len(arrays[f"{kind}{i}_pixel"]):
+                    raise DatasetError(f"{npz}: {full} has shape {a[key].shape}, inconsistent with {kind}{i}_pixel")
+                if not np.isfinite(a[key]).all():
+                    raise DatasetError(f"{npz}: {full} has NaN/inf values")
+            pix = a["pixel"].astype(np.int64)
+            if not len(pix) or pix.min() < 0 or pix.max() >= height * width:
+                raise DatasetError(f"{npz}: {kind}{i}_pixel is empty or outside the {height}x{width} view")
+            t = {k: torch.from_numpy(np.asarray(v, np.float32)) for k, v in a.items() if k != "pixel"}
+            out.append(
+                Case(
+                    kind,
+                    i,
+                    entry,
+                    torch.from_numpy(pix),
+                    t["albedo"],
+                    t["material"],
+                    t["radiance"],
+                    t["stderr"],
+                    t.get("normal"),
+                    t.get("depth_m"),
+                )
+            )
+    return out

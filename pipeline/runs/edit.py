@@ -1,0 +1,284 @@
+"""Stage `edit`: the lighting judged by what it is for. Objects inserted into, and materials edited in,
+held-out views are re-rendered through the MC render layer with LightNet as the incident radiance, and
+scored against Mitsuba renders of the same cases (written by `synthesize`, `pipeline.data.cases`).
+
+Rows, each rendering the same pixels with the same sample directions (one seed per case):
+- `lightnet`: LightNet on the photo and the frozen MaterialNet's G-buffers (the method);
+- `lightnet_gt_gbuffers`: LightNet on the ground-truth G-buffers (what a perfect MaterialNet would give);
+- `constant`, `scaled_constant`: the content-blind lights of `train_lighting` (mean training radiance,
+  and the same at the photo's exposure);
+- `nearest_probe`: the ground-truth free-point probe nearest to the case as a distant environment map
+  (the best a single environment map can do, given the true light at one point);
+- `oracle`: Mitsuba's exact incident radiance for every sample ray (`data.synth.oracle`), on the
+  ground-truth G-buffers: validates the evaluation itself.
+Objects bring their own exact G-buffers in every row; edits apply the new material to the predicted
+G-buffers (rows on predictions) or the ground truth (`lightnet_gt_gbuffers`, `oracle`).
+
+Writes `reports/edit/metrics.json` (means per material class and edit kind, paired bootstrap intervals
+of LightNet minus every other row), `cases.csv` (every case and row), `timings.json`, `insertion.png`
+and `editing.png` (figure grids), all also to MLflow.
+"""
+
+from __future__ import annotations
+
+import csv
+import json
+import time
+from pathlib import Path
+
+import numpy as np
+import torch
+from omegaconf import DictConfig, OmegaConf
+from torch.utils.data import DataLoader
+from tqdm import tqdm
+
+from pipeline.data import cases as case_io
+from pipeline.data import interiorverse as iv
+from pipeline.data.datasets import ShardDataset, collate_views
+from pipeline.data.lighting import ViewLighting
+from pipeline.data.synth import mitsuba_backend as mb
+from pipeline.data.synth.cases import InsertedObject, MaterialEdit
+from pipeline.data.synth.oracle import MitsubaOracle
+from pipeline.data.synth.scene import Room
+from pipeline.metrics.insertion import HIGHER_IS_BETTER, SCORES, case_scores, paired_bootstrap
+from pipeline.models.insertion import composite_gbuffer, composite_image, light_net_radiance, render_case
+from pipeline.models.light_net import load_light_export
+from pipeline.models.light_net.branches import image_scale
+from pipeline.models.material_net import load_material_export, predict_maps
+from pipeline.ops.camera import backproject
+from pipeline.ops.envmap import sphere_lookup
+from pipeline.systems.lighting import render_layer
+from pipeline.systems.lighting_baselines import mean_training_radiance
+from pipeline.tracking import publish, stage_run
+from pipeline.tracking.figures import insertion_grid
+
+ROWS = ("lightnet", "lightnet_gt_gbuffers", "constant", "scaled_constant", "nearest_probe", "oracle")
+FIGURE_ROWS = ("lightnet", "lightnet_gt_gbuffers", "scaled_constant", "nearest_probe", "oracle")
+
+
+def view_gbuffers(maps: dict, pred: dict) -> tuple[dict, dict]:
+    """(ground truth, prediction) G-buffers of one view as the render layer takes them (depth in metres, 0
+    outside the ground-truth mask, as `train_lighting` feeds LightNet)."""
+    mask = torch.from_numpy(maps["mask"][..., 0] > 0.5)
+
+    def gb(src) -> dict:
+        depth = torch.from_numpy(np.nan_to_num(src["depth"], posinf=0.0) / 1000.0).float().reshape(mask.shape)
+        return {
+            "depth": torch.where(mask, depth, torch.zeros_like(depth))[None],
+            "normal": torch.from_numpy(np.ascontiguousarray(src["normal"])).float().permute(2, 0, 1)[None],
+            "albedo": torch.from_numpy(np.ascontiguousarray(src["albedo"])).float().permute(2, 0, 1)[None],
+            "material": torch.from_numpy(np.ascontiguousarray(src["material"][..., :2])).float().permute(2, 0, 1)[None],
+        }
+
+    return gb(maps), gb(pred)
+
+
+def edit_values(edit: dict, base: dict, pixels: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """(albedo (M, 3), material (M, 2)) of the edited region: the edit's fields where it sets them, the
+    G-buffers `base` (predicted) elsewhere."""
+    albedo = base["albedo"][0].reshape(3, -1)[:, pixels].T.clone()
+    material = base["material"][0].reshape(2, -1)[:, pixels].T.clone()
+    if edit.get("albedo") is not None:
+        albedo[:] = torch.tensor(edit["albedo"], dtype=albedo.dtype)
+    if edit.get("roughness") is not None:
+        material[:, 0] = float(edit["roughness"])
+    if edit.get("metallic") is not None:
+        material[:, 1] = float(edit["metallic"])
+    return albedo, material
+
+
+def case_centre(case: case_io.Case, gt: dict, fov: float, w2v: np.ndarray) -> torch.Tensor:
+    """(3,) view-space centre of a case: the object's bounding centre, or the mean point of the edit."""
+    if case.kind == "object":
+        world = np.asarray(case.description["spheres"])[:, :3].mean(0)
+        return torch.from_numpy((world - w2v[:3, 3]) @ w2v[:3, :3]).float()
+    pts = backproject(gt["depth"], fov)[0].reshape(-1, 3)[case.pixel]
+    return pts.mean(0)
+
+
+def score_view(ctx: dict, cases: list[case_io.Case], cfg: DictConfig) -> list[dict]:
+    """Every row of every case of one view: [{"case", "rows": {row: scores}, "renders": {row: (M, 3)}}]."""
+    layer, fov, gt, pred, im, scale = ctx["layer"], ctx["fov"], ctx["gt"], ctx["pred"], ctx["im"], ctx["scale"]
+    photo = im[0].permute(1, 2, 0)
+    constants, free = ctx["constants"], ctx["light"].free
+    net, seed = ctx["net"], int(cfg.render.seed)
+    lights = {
+        "lightnet": light_net_radiance(net, ctx["ctx_pred"], pred, fov, seed),
+        "lightnet_gt_gbuffers": light_net_radiance(net, ctx["ctx_gt"], gt, fov, seed),
+        "constant": lambda idx, o, wi, b: constants.constant.expand(len(wi), 3),
+        "scaled_constant": lambda idx, o, wi, b: (constants.ratio * scale).expand(len(wi), 3),
+    }
+    out = []
+    for case in cases:
+        if case.kind == "object":
+            obj = {"albedo": case.albedo, "material": case.material, "normal": case.normal, "depth": case.depth}
+            shade_pred = composite_gbuffer(pred, case.pixel, **obj)
+            shade_gt = composite_gbuffer(gt, case.pixel, **obj)
+            oracle = ctx["oracle"].for_object(InsertedObject(**case.description))
+        else:
+            albedo, material = edit_values(case.description, pred, case.pixel)
+            shade_pred = composite_gbuffer(pred, case.pixel, albedo=albedo, material=material)
+            shade_gt = composite_gbuffer(gt, case.pixel, albedo=case.albedo, material=case.material)
+            oracle = ctx["oracle"].for_edit(MaterialEdit(**case.description))
+        centre = case_centre(case, gt, fov, ctx["w2v"])
+        probe = int(torch.argmin((free.position - centre).norm(dim=-1)))
+        probe_map = free.radiance[probe : probe + 1]
+        rows_light = {
+            **lights,
+            "nearest_probe": lambda idx, o, wi, b, m=probe_map: sphere_lookup(m, torch.zeros_like(b), wi),
+            "oracle": oracle,
+        }
+        renders, scores, seconds = {}, {}, {}
+        case_seed = seed * 1000 + len(out)
+        for row in ROWS:
+            shading = shade_gt if row in ("lightnet_gt_gbuffers", "oracle") else shade_pred
+            t0 = time.perf_counter()
+            with torch.no_grad():
+                renders[row] = render_case(layer, shading, fov, case.pixel, rows_light[row], case_seed)
+            seconds[row] = time.perf_counter() - t0
+            scores[row] = case_scores(renders[row], case.radiance, photo, case.pixel, float(scale))
+        out.append({"case": case, "rows": scores, "renders": renders, "seconds": seconds})
+    return out
+
+
+def summarise(records: list[dict], resamples: int, seed: int) -> dict[str, float]:
+    """Means per group (material class of objects, kind of edits, and all of each) and paired bootstrap
+    intervals of LightNet minus every other row."""
+    metrics: dict[str, float] = {}
+    groups: dict[str, list[dict]] = {}
+    for r in records:
+        prefix = "insert" if r["kind"] == "object" else "edit"
+        groups.setdefault(f"{prefix}/{r['label']}", []).append(r)
+        groups.setdefault(f"{prefix}/all", []).append(r)
+    for group, rs in sorted(groups.items()):
+        metrics[f"{group}/cases"] = float(len(rs))
+        for row in ROWS:
+            for s in SCORES:
+                metrics[f"{group}/{row}/{s}"] = float(np.mean([r[f"{row}/{s}"] for r in rs]))
+        for row in ROWS[1:]:
+            for s in SCORES:
+                diff = [r[f"lightnet/{s}"] - r[f"{row}/{s}"] for r in rs]
+                ci = paired_bootstrap(diff, resamples, seed)
+                for k in ("diff", "lo", "hi"):
+                    metrics[f"{group}/lightnet_minus_{row}/{s}_{k}"] = ci[k]
+                better = ci["lo"] > 0 if HIGHER_IS_BETTER[s] else ci["hi"] < 0
+                worse = ci["hi"] < 0 if HIGHER_IS_BETTER[s] else ci["lo"] > 0
+                metrics[f"{group}/lightnet_minus_{row}/{s}_verdict"] = 1.0 if better else (-1.0 if worse else 0.0)
+    return metrics
+
+
+def figure_panels(results: list[dict], photo_of: dict, kind: str, n: int) -> list[dict]:
+    panels = []
+    for res in results:
+        case = res["case"]
+        if case.kind != kind or len(panels) >= n:
+            continue
+        photo, scale, view_id = photo_of[res["view"]]
+        panels.append(
+            {
+                "label": f"{view_id} {case.name} {case.label}",
+                "photo": photo.numpy(),
+                "scale": float(scale),
+                "pixels": case.pixel.numpy(),
+                "gt": composite_image(photo, case.pixel, case.radiance).numpy(),
+                "rows": {row: composite_image(photo, case.pixel, res["renders"][row]).numpy() for row in FIGURE_ROWS},
+                "psnr": {row: res["rows"][row]["psnr"] for row in FIGURE_ROWS},
+            }
+        )
+    return panels
+
+
+def _dataset_record(root: Path) -> dict:
+    path = root / "dataset.json"
+    try:
+        return json.loads(path.read_text())
+    except (OSError, json.JSONDecodeError) as exc:
+        raise iv.DatasetError(f"{path}: cannot read the generator's record ({exc})") from exc
+
+
+def run(cfg: DictConfig) -> dict[str, float]:
+    import mlflow
+
+    root, report = Path(cfg.data_root), Path(cfg.report_dir)
+    material_net, material_meta = load_material_export(cfg.material_path)
+    net, _ = load_light_export(cfg.light_path)
+    net.eval()
+    train = ShardDataset(cfg.data_dir, "train", lighting=True)
+    constants = mean_training_radiance(DataLoader(train, batch_size=16, collate_fn=collate_views))
+    layer = render_layer(OmegaConf.to_container(cfg.render, resolve=True), "eval_spp")
+    views = [(s, v) for s in iv.read_split(root, str(cfg.split)) for v in iv.list_views(root, s)]
+    views = [sv for sv in views if case_io.has_cases(root, *sv)]
+    if not views:
+        raise iv.DatasetError(f"{root}: no {cfg.split} view has insertion/editing cases (synth.cases.enabled)")
+    max_depth = int(_dataset_record(root)["config"]["max_depth"])  # the oracle traces as the views were rendered
+    mb.init_mitsuba(mb.choose_variant("auto"))
+    records, results, photo_of, seconds = [], [], {}, {row: 0.0 for row in ROWS}
+    t_start = time.perf_counter()
+    with stage_run("edit", cfg, tags={"data_source": "synthetic", "split": str(cfg.split)}):
+        for scene, view in tqdm(views, desc="edit", unit="view", disable=not cfg.progress):
+            check = iv.read_view(root, scene, view)
+            if check.maps is None:
+                raise iv.DatasetError(f"{root}/{scene}/{view}: {check.rejections(str(cfg.split))}")
+            maps = check.maps
+            H, W = maps["im"].shape[:2]
+            cases = case_io.read_cases(root, scene, view, H, W)
+            camera = (iv.read_cameras(root, scene) or {}).get(view)
+            if camera is None:
+                raise iv.DatasetError(f"{root}/{scene}/cameras.json: no camera for view {view}")
+            room = Room.from_json(json.loads((root / scene / "scene.json").read_text()))
+            fov = float(camera["fov_x_deg"])
+            im = torch.from_numpy(np.ascontiguousarray(maps["im"])).float().permute(2, 0, 1)[None]
+            gt, pred = view_gbuffers(maps, predict_maps(material_net, material_meta, maps["im"]))
+            with torch.no_grad():
+                ctx = {
+                    "layer": layer,
+                    "fov": fov,
+                    "gt": gt,
+                    "pred": pred,
+                    "im": im,
+                    "scale": image_scale(im)[0],
+                    "constants": constants,
+                    "light": ViewLighting.from_arrays(iv.read_light(iv.light_path(root, scene, view))),
+                    "net": net,
+                    "ctx_pred": net.encode(im, pred["depth"], fov),
+                    "ctx_gt": net.encode(im, gt["depth"], fov),
+                    "w2v": np.asarray(camera["world_from_view"]),
+                    "oracle": MitsubaOracle(
+                        room, room.cameras[int(view)], max_depth, int(cfg.oracle_spp), int(cfg.seed)
+                    ),
+                }
+            view_id = f"{scene}/{view}"
+            photo_of[view_id] = (im[0].permute(1, 2, 0), ctx["scale"], view_id)
+            for res in score_view(ctx, cases, cfg):
+                case = res["case"]
+                res["view"] = view_id
+                results.append(res)
+                row = {"view": view_id, "case": case.name, "kind": case.kind, "label": case.label}
+                row["pixels"] = len(case.pixel)
+                row["support"] = case.description.get("support", case.description.get("target"))
+                for name, sc in res["rows"].items():
+                    row.update({f"{name}/{k}": v for k, v in sc.items()})
+                    seconds[name] += res["seconds"][name]
+                records.append(row)
+        metrics = summarise(records, int(cfg.bootstrap), int(cfg.seed))
+        report.mkdir(parents=True, exist_ok=True)
+        with open(report / "cases.csv", "w", newline="") as fh:
+            writer = csv.DictWriter(fh, fieldnames=list(records[0]))
+            writer.writeheader()
+            writer.writerows(records)
+        figures = []
+        n_fig = int(cfg.figure_cases)
+        for kind, name, title in (
+            ("object", "insertion.png", "object insertion"),
+            ("edit", "editing.png", "material editing"),
+        ):
+            panels = figure_panels(results, photo_of, kind, n_fig)
+            if panels:
+                figures.append(insertion_grid(panels, report / name, f"{title}: ground truth and rows (crops)"))
+        n_cases = len(records)
+        timings = {f"seconds_per_case/{row}": s / n_cases for row, s in seconds.items()}
+        timings["wall_seconds"] = time.perf_counter() - t_start
+        publish(report, metrics, artifacts=(report / "cases.csv",), timings=timings)
+        for figure in figures:
+            mlflow.log_artifact(str(figure), "figures")
+    return metrics

@@ -1,0 +1,129 @@
+"""Insertion and editing cases written by `synthesize`: present for val/test views, checked on read,
+physically placed (clear of the room, resting on a support), and their G-buffers are the objects'."""
+
+import json
+import shutil
+
+import numpy as np
+import pytest
+import torch
+
+from pipeline.data import cases as case_io
+from pipeline.data import interiorverse as iv
+from pipeline.data.interiorverse import DatasetError
+
+pytestmark = pytest.mark.slow
+
+
+def _views(root, splits=("val", "test")):
+    return [(s, v) for sp in splits for s in iv.read_split(root, sp) for v in iv.list_views(root, s)]
+
+
+def _read(root, scene, view):
+    maps = iv.read_view(root, scene, view).maps
+    H, W = maps["im"].shape[:2]
+    return maps, case_io.read_cases(root, scene, view, H, W)
+
+
+def test_val_and_test_views_have_cases_and_train_views_none(micro_root):
+    assert all(case_io.has_cases(micro_root, s, v) for s, v in _views(micro_root))
+    assert not any(case_io.has_cases(micro_root, s, v) for s, v in _views(micro_root, ("train",)))
+    kinds = {c.kind for s, v in _views(micro_root) for c in _read(micro_root, s, v)[1]}
+    assert kinds == {"object", "edit"}
+    for s, v in _views(micro_root):
+        desc = json.loads(case_io.paths(micro_root, s, v)[0].read_text())
+        for obj in desc["objects"]:
+            assert obj["kind"] in ("sphere", "snowman") and obj["material_class"] in ("mirror", "glossy", "diffuse")
+            assert len(obj["spheres"]) == (1 if obj["kind"] == "sphere" else 2)
+
+
+def test_objects_are_clear_of_the_room_and_resting_ones_stand_on_a_surface(micro_root, mitsuba_variant):
+    from pipeline.data.synth import mitsuba_backend as mb
+    from pipeline.data.synth.cases import clearance
+    from pipeline.data.synth.scene import Room
+    from pipeline.ops.primitives import LIFT_M
+
+    checked = 0
+    for s, v in _views(micro_root):
+        room = Room.from_json(json.loads((micro_root / s / "scene.json").read_text()))
+        scene = mb.load_scene(room)
+        for c in _read(micro_root, s, v)[1]:
+            if c.kind != "object":
+                continue
+            for x, y, z, r in c.description["spheres"]:
+                assert clearance(scene, np.array([x, y, z])) >= r, (s, v, c.name)
+            if c.description["support"] == "resting":
+                x, y, z, r = c.description["spheres"][0]
+                foot = np.array([[x, y - r + 0.01, z]])
+                hit = mb.intersect(scene, foot, np.array([[0.0, -1.0, 0.0]]))
+                assert hit["t"][0] == pytest.approx(0.01 + LIFT_M, abs=1e-4), (s, v, c.name)
+            checked += 1
+    assert checked >= 2
+
+
+def test_object_gbuffers_match_analytic_ray_casting(micro_root):
+    """Mitsuba's hits at pixel centres (what synthesize stores) against `models.insertion.object_gbuffer`'s
+    analytic sphere intersection, occluded by the view's ground-truth depth."""
+    from pipeline.data.synth.mitsuba_backend import world_from_view
+    from pipeline.models.insertion import object_gbuffer
+
+    for s, v in _views(micro_root):
+        maps, cases = _read(micro_root, s, v)
+        cam = iv.read_cameras(micro_root, s)[v]
+        w2v = world_from_view(
+            type("C", (), json.loads((micro_root / s / "scene.json").read_text())["cameras"][int(v)])()
+        )
+        assert np.allclose(w2v, np.asarray(cam["world_from_view"]))
+        depth = torch.from_numpy(np.nan_to_num(maps["depth"][..., 0], posinf=0.0) / 1000.0).double()
+        for c in cases:
+            if c.kind != "object":
+                continue
+            world = np.asarray(c.description["spheres"])
+            view = np.concatenate([(world[:, :3] - w2v[:3, 3]) @ w2v[:3, :3], world[:, 3:]], 1)
+            g = object_gbuffer(torch.from_numpy(view), depth, float(cam["fov_x_deg"]))
+            same = np.intersect1d(g["pixel"].numpy(), c.pixel.numpy())
+            # pixel sets agree but where a silhouette or contact crosses a pixel centre within float32 noise
+            assert len(same) >= 0.95 * max(len(c.pixel), len(g["pixel"])), (s, v, c.name)
+            ia = np.searchsorted(g["pixel"].numpy(), same)
+            ib = np.searchsorted(c.pixel.numpy(), same)
+            assert torch.allclose(g["depth"][ia].float(), c.depth[ib], atol=1e-4)
+            assert torch.allclose(g["normal"][ia].float(), c.normal[ib], atol=1e-3)
+            assert torch.allclose(c.albedo, torch.tensor(c.description["albedo"]).expand_as(c.albedo), atol=1e-6)
+
+
+def test_edited_ground_truth_carries_the_new_material(micro_root):
+    edits = [c for s, v in _views(micro_root) for c in _read(micro_root, s, v)[1] if c.kind == "edit"]
+    assert edits
+    for c in edits:
+        d = c.description
+        assert torch.allclose(c.albedo, torch.tensor(d["albedo"]).expand_as(c.albedo), atol=1e-6)
+        if d["kind"] == "metal":
+            assert torch.all(c.material[:, 1] == 1.0) and torch.allclose(c.material[:, 0], torch.tensor(0.1))
+        assert torch.all(c.radiance >= 0) and torch.all(c.stderr >= 0)
+
+
+@pytest.mark.parametrize("damage", ["missing_json", "corrupt_npz", "missing_key", "nan", "out_of_view", "wrong_size"])
+def test_damaged_case_files_are_refused_naming_the_file(micro_root, tmp_path, damage):
+    scene, view = next((s, v) for s, v in _views(micro_root) if _read(micro_root, s, v)[1])
+    shutil.copytree(micro_root / scene, tmp_path / scene)
+    js, npz = case_io.paths(tmp_path, scene, view)
+    with np.load(npz) as z:
+        arrays = {k: z[k] for k in z.files}
+    H, W = (int(x) for x in arrays["size"])
+    if damage == "missing_json":
+        js.unlink()
+    elif damage == "corrupt_npz":
+        npz.write_bytes(npz.read_bytes()[:100])
+    else:
+        if damage == "missing_key":
+            arrays.pop("object0_normal" if "object0_normal" in arrays else "edit0_albedo")
+        elif damage == "nan":
+            key = next(k for k in arrays if k.endswith("_radiance"))
+            arrays[key][0, 0] = np.nan
+        elif damage == "out_of_view":
+            key = next(k for k in arrays if k.endswith("_pixel"))
+            arrays[key][0] = H * W
+        np.savez(npz, **arrays)
+    h, w = (H, W + 1) if damage == "wrong_size" else (H, W)
+    with pytest.raises(DatasetError, match=f"{scene}/{view}_cases"):
+        case_io.read_cases(tmp_path, scene, view, h, w)
