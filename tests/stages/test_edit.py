@@ -116,3 +116,129 @@ def test_oracle_render_matches_mitsuba_within_its_noise(micro_root, mitsuba_vari
     diff = ours.double().numpy() - ref
     se = diff.std(0, ddof=1) / np.sqrt(len(diff))
     assert np.all(np.abs(diff.mean(0)) <= 4 * se + 0.10 * ref.mean(0)), (diff.mean(0), se, ref.mean(0))
+
+
+@pytest.fixture(scope="module")
+def photos(micro_root, tmp_path_factory):
+    """A test view as the HDR EXR synthesize wrote and as an 8-bit sRGB PNG."""
+    from PIL import Image
+
+    from pipeline.data import interiorverse as iv
+    from pipeline.data.formats.photo import linear_to_srgb
+
+    scene = iv.read_split(micro_root, "test")[0]
+    exr = iv.map_path(micro_root, scene, "000", "im")
+    im = iv.read_view(micro_root, scene, "000").maps["im"]
+    out = tmp_path_factory.mktemp("photos")
+    png = out / "photo.png"
+    scaled = im * (0.4 / float(np.median(im)))
+    Image.fromarray(np.round(linear_to_srgb(np.clip(scaled, 0, 1)) * 255).astype(np.uint8)).save(png)
+    return {"exr": exr, "png": png, "size": im.shape[:2]}
+
+
+def _models(exports):
+    return ["--material-net", str(exports / "material.pt"), "--light-net", str(exports / "light.pt"), "--spp", "4"]
+
+
+@pytest.mark.parametrize("kind", ["png", "exr"])
+def test_insert_and_edit_composite_into_the_photo(photos, exports, tmp_path, kind):
+    from PIL import Image
+
+    from pipeline.cli import main
+    from pipeline.data.formats.exr import read_exr
+    from pipeline.data.formats.photo import read_linear
+
+    H, W = photos["size"]
+    photo = read_linear(photos[kind])
+    out = tmp_path / "ins.png"
+    args = ["insert", str(photos[kind]), "--at", f"{H // 2},{W // 2}", "--object", "snowman", "--material", "glossy"]
+    assert main([*args, "--out", str(out), *_models(exports)]) == 0
+    result = read_exr(tmp_path / "ins.exr")
+    changed = np.abs(result - photo).max(-1) > 0
+    assert 0 < changed.sum() < H * W / 2  # the object's pixels, and only those
+    assert np.isfinite(result).all()
+    png = np.asarray(Image.open(out))
+    assert png.shape == (H, W, 3)
+    if kind == "png":  # untouched pixels round-trip to the input's own 8-bit values
+        original = np.asarray(Image.open(photos["png"]).convert("RGB"))
+        assert np.array_equal(png[~changed], original[~changed])
+    mask = np.zeros((H, W), np.uint8)
+    mask[H // 4 : H // 2, W // 4 : W // 2] = 255
+    Image.fromarray(mask).save(tmp_path / "mask.png")
+    edit = ["edit", str(photos[kind]), "--mask", str(tmp_path / "mask.png"), "--metallic", "1", "--roughness", "0.1"]
+    assert main([*edit, "--out", str(tmp_path / "ed.exr"), *_models(exports)]) == 0
+    edited = read_exr(tmp_path / "ed.exr")
+    outside = mask == 0
+    assert np.array_equal(edited[outside], photo[outside]) and not np.array_equal(edited[~outside], photo[~outside])
+    assert (tmp_path / "ed.png").is_file()
+
+
+def test_insert_and_edit_refuse_bad_input_naming_it_and_write_nothing(photos, exports, tmp_path, capsys):
+    from PIL import Image
+
+    from pipeline.cli import main
+
+    H, W = photos["size"]
+    Image.fromarray(np.zeros((H + 1, W), np.uint8)).save(tmp_path / "big_mask.png")
+    Image.fromarray(np.zeros((H, W), np.uint8)).save(tmp_path / "empty_mask.png")
+    (tmp_path / "corrupt.png").write_bytes(b"\x89PNG\r\n\x1a\nnot a png")
+    photo, out = str(photos["png"]), tmp_path / "outs" / "x.png"
+    out.parent.mkdir()
+    models = _models(exports)
+    cases = {
+        "--at": ["insert", photo, "--at", f"{H + 5},3", "--out", str(out), *models],
+        "--at ": ["insert", photo, "--at", "3", "--out", str(out), *models],
+        "--mask": [
+            "edit",
+            photo,
+            "--mask",
+            str(tmp_path / "big_mask.png"),
+            "--metallic",
+            "1",
+            "--out",
+            str(out),
+            *models,
+        ],
+        "selects no pixel": [
+            "edit",
+            photo,
+            "--mask",
+            str(tmp_path / "empty_mask.png"),
+            "--albedo",
+            "1,0,0",
+            "--out",
+            str(out),
+            *models,
+        ],
+        "--albedo": [
+            "edit",
+            photo,
+            "--mask",
+            str(tmp_path / "big_mask.png"),
+            "--albedo",
+            "2,0",
+            "--out",
+            str(out),
+            *models,
+        ],
+        "at least one of": ["edit", photo, "--mask", str(tmp_path / "empty_mask.png"), "--out", str(out), *models],
+        "corrupt.png": ["insert", str(tmp_path / "corrupt.png"), "--at", "3,3", "--out", str(out), *models],
+        "missing.pt": [
+            "insert",
+            photo,
+            "--at",
+            "3,3",
+            "--out",
+            str(out),
+            "--material-net",
+            str(tmp_path / "missing.pt"),
+        ],
+        "light.pt": ["insert", photo, "--at", "3,3", "--out", str(out), "--material-net", str(exports / "light.pt")],
+        "--out": ["insert", photo, "--at", "3,3", "--out", str(tmp_path / "nowhere" / "x.png"), *models],
+        ".jpg": ["insert", photo, "--at", "3,3", "--out", str(tmp_path / "x.jpg"), *models],
+    }
+    for needle, argv in cases.items():
+        assert main(argv) == 2, needle
+        err = capsys.readouterr().err
+        assert needle.strip() in err and "Traceback" not in err, (needle, err)
+        assert not any(out.parent.iterdir()), needle
