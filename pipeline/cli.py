@@ -92,12 +92,8 @@ class EditError(ValueError):
     """A bad `insert` / `edit` argument; the message names it."""
 
 
-# materials of inserted objects: (albedo, roughness, metallic), the classes the `edit` stage scores
-OBJECT_MATERIALS = {
-    "mirror": ((0.95, 0.93, 0.88), 0.05, 1.0),
-    "glossy": ((0.7, 0.12, 0.1), 0.25, 0.0),
-    "diffuse": ((0.7, 0.7, 0.7), 0.9, 0.0),
-}
+MATERIAL_CLASSES = ("diffuse", "glossy", "mirror")  # models.insertion.OBJECT_MATERIALS
+
 DEFAULT_LIGHT = str(Path("outputs") / "train_lighting" / "model.pt")
 DEFAULT_MATERIAL = str(Path("outputs") / "train_material" / "model.pt")
 
@@ -149,12 +145,9 @@ def _write_result(image, png: Path, exr: Path, hdr_input: bool) -> list[Path]:
 def _scene(photo: str | Path, material_path, light_path, fov: float):
     """Read the photo and both exports (everything checked before any work) and predict the G-buffers:
     (photo (H, W, 3), image (1, 3, H, W), G-buffers, LightNet, its context)."""
-    import numpy as np
-    import torch
-
     from pipeline.data.formats.photo import read_linear
     from pipeline.models.light_net import load_light_export
-    from pipeline.models.material_net import load_material_export, predict_maps
+    from pipeline.models.material_net import load_material_export
 
     if not 1.0 <= fov <= 170.0:
         raise EditError(f"--fov {fov}: must be a horizontal field of view in degrees (1-170)")
@@ -165,21 +158,9 @@ def _scene(photo: str | Path, material_path, light_path, fov: float):
         raise EditError(f"{photo}: {im.shape[1]}x{im.shape[0]} pixels; insert/edit take 8 to 4096 pixels a side")
     if float(im.mean()) <= 0:
         raise EditError(f"{photo}: the image is black; there is no light to estimate")
-    maps = predict_maps(material_net, meta, im)
+    from pipeline.models.insertion import prepare_scene
 
-    def chw(a):
-        return torch.from_numpy(np.ascontiguousarray(a)).float().permute(2, 0, 1)[None]
-
-    gb = {
-        "depth": torch.from_numpy(maps["depth"] / 1000.0).float()[None],
-        "normal": chw(maps["normal"]),
-        "albedo": chw(maps["albedo"]),
-        "material": chw(maps["material"][..., :2]),
-    }
-    image = chw(im)
-    with torch.no_grad():
-        ctx = light_net.eval().encode(image, gb["depth"], fov)
-    return torch.from_numpy(im), image, gb, light_net, ctx
+    return prepare_scene(im, material_net, meta, light_net, fov)
 
 
 def insert_object(
@@ -197,12 +178,7 @@ def insert_object(
 ) -> list[Path]:
     """`invrender insert`: an object resting on the predicted surface at pixel `at` ("row,col"), lit by
     LightNet through the MC render layer, composited into the photo; writes <out>.png and <out>.exr."""
-    import torch
-
-    from pipeline.models.insertion import composite_image, light_net_radiance, object_gbuffer, render_case
-    from pipeline.models.render_layer import MCRenderLayer
-    from pipeline.ops.camera import backproject
-    from pipeline.ops.primitives import object_spheres
+    from pipeline.models.insertion import OBJECT_MATERIALS, insert_into
 
     png, exr = _output_paths(out)
     if kind not in ("sphere", "snowman"):
@@ -212,40 +188,9 @@ def insert_object(
     if spp < 1:
         raise EditError(f"--spp {spp}: must be >= 1")
     row, col = (int(v) for v in _parse_floats(at, 2, "--at"))
-    photo_t, image, gb, net, ctx = _scene(photo, material_path, light_path, fov)
-    H, W = photo_t.shape[:2]
-    if not (0 <= row < H and 0 <= col < W):
-        raise EditError(f"--at {at}: pixel (row {row}, col {col}) is outside the {W}x{H} image")
-    point = backproject(gb["depth"], fov)[0, row, col]
-    z = float(gb["depth"][0, row, col])
-    if not math.isfinite(z) or z <= 0:
-        raise EditError(f"--at {at}: no valid surface at that pixel (predicted depth {z})")
-    n = torch.nn.functional.normalize(gb["normal"][0, :, row, col], dim=0)
-    f = (W / 2) / math.tan(math.radians(fov) / 2)
-    r = float(radius) if radius is not None else z * (W / 16) / f
-    if not 0 < r < 10 * z:
-        raise EditError(f"--radius {radius}: must be positive and at most 10x the depth there ({z:.2f} m)")
-    spheres = object_spheres(kind, point, n, r)  # resting on the predicted surface, up = its normal
-    obj = object_gbuffer(spheres, gb["depth"][0], fov)
-    if obj is None:
-        raise EditError(f"--at {at}: the object would not be visible (it lies behind the scene or outside the view)")
-    albedo, rough, metal = OBJECT_MATERIALS[material]
-    M = len(obj["pixel"])
-    values = {
-        "albedo": torch.tensor(albedo).expand(M, 3),
-        "material": torch.tensor([rough, metal]).expand(M, 2),
-        "normal": obj["normal"].float(),
-        "depth": obj["depth"].float(),
-    }
-    from pipeline.models.insertion import composite_gbuffer
-
-    shading = composite_gbuffer(gb, obj["pixel"], **values)
-    with torch.no_grad():
-        rgb = render_case(
-            MCRenderLayer(spp=spp), shading, fov, obj["pixel"], light_net_radiance(net, ctx, gb, fov, seed), seed
-        )
-    result = composite_image(photo_t, obj["pixel"], rgb).numpy()
-    return _write_result(result, png, exr, Path(photo).suffix.lower() == ".exr")
+    scene = _scene(photo, material_path, light_path, fov)
+    result, _ = insert_into(scene, row, col, kind, material, radius, fov, spp, seed)
+    return _write_result(result.numpy(), png, exr, Path(photo).suffix.lower() == ".exr")
 
 
 def edit_material(
@@ -409,7 +354,7 @@ def main(argv: list[str] | None = None) -> int:
     i.add_argument("photo")
     i.add_argument("--at", required=True, help="ROW,COL: the pixel whose predicted surface the object rests on")
     i.add_argument("--object", default="sphere", choices=("sphere", "snowman"))
-    i.add_argument("--material", default="mirror", choices=sorted(OBJECT_MATERIALS))
+    i.add_argument("--material", default="mirror", choices=MATERIAL_CLASSES)
     i.add_argument("--radius", type=float, default=None, help="object size in metres (default: 1/16 of the view)")
     _add_render_args(i)
     i.set_defaults(func=_insert)
@@ -426,10 +371,11 @@ def main(argv: list[str] | None = None) -> int:
     from pipeline.data.iiw import IIWError
     from pipeline.data.interiorverse import DatasetError
     from pipeline.models.export import ExportError
+    from pipeline.models.insertion import InsertionError
 
     try:
         return args.func(args)
-    except (DatasetError, PhotoError, ExportError, IIWError, EditError) as exc:
+    except (DatasetError, PhotoError, ExportError, IIWError, EditError, InsertionError) as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 2
 

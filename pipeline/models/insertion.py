@@ -13,11 +13,28 @@ All tensors are of one view: G-buffers depth (1, H, W) metres, normal/albedo (1,
 
 from __future__ import annotations
 
+import math
+
+import numpy as np
 import torch
 
+from pipeline.models.material_net import predict_maps
 from pipeline.models.render_layer import MCRenderLayer, PointRadianceFn
-from pipeline.ops.camera import pixel_directions
-from pipeline.ops.primitives import raycast_spheres
+from pipeline.ops.camera import backproject, pixel_directions
+from pipeline.ops.primitives import object_spheres, raycast_spheres
+
+
+class InsertionError(ValueError):
+    """An insertion or edit that cannot be done as asked (a pixel off the image or on no surface, an
+    invisible object); the message names the argument."""
+
+
+# materials of inserted objects: (albedo, roughness, metallic), the classes the `edit` stage scores
+OBJECT_MATERIALS = {
+    "mirror": ((0.95, 0.93, 0.88), 0.05, 1.0),
+    "glossy": ((0.7, 0.12, 0.1), 0.25, 0.0),
+    "diffuse": ((0.7, 0.7, 0.7), 0.9, 0.0),
+}
 
 
 def composite_gbuffer(
@@ -97,3 +114,63 @@ def composite_image(photo: torch.Tensor, pixels: torch.Tensor, values: torch.Ten
     flat = photo.reshape(-1, 3).clone()
     flat[pixels] = values.to(flat.dtype)
     return flat.reshape(photo.shape)
+
+
+def prepare_scene(im, material_net, meta: dict, light_net, fov: float):
+    """A linear photo (H, W, 3) -> (photo (H, W, 3), image (1, 3, H, W), predicted G-buffers, LightNet,
+    its context), what `insert_into` and `invrender edit` work on."""
+    maps = predict_maps(material_net, meta, im)
+
+    def chw(a):
+        return torch.from_numpy(np.ascontiguousarray(a)).float().permute(2, 0, 1)[None]
+
+    gb = {
+        "depth": torch.from_numpy(maps["depth"] / 1000.0).float()[None],
+        "normal": chw(maps["normal"]),
+        "albedo": chw(maps["albedo"]),
+        "material": chw(maps["material"][..., :2]),
+    }
+    image = chw(im)
+    with torch.no_grad():
+        ctx = light_net.eval().encode(image, gb["depth"], fov)
+    return torch.from_numpy(im), image, gb, light_net, ctx
+
+
+def insert_into(
+    scene, row: int, col: int, kind: str, material: str, radius: float | None, fov: float, spp: int, seed: int
+):
+    """An object (`ops.primitives.object_spheres` of `kind`, one of OBJECT_MATERIALS) resting on the predicted
+    surface at pixel (row, col), its size `radius` metres (default: 1/16 of the view), rendered at `spp`
+    under LightNet on a `prepare_scene`: (composited photo (H, W, 3), object pixels (M,))."""
+    photo_t, _, gb, net, ctx = scene
+    H, W = photo_t.shape[:2]
+    at = f"{row},{col}"
+    if not (0 <= row < H and 0 <= col < W):
+        raise InsertionError(f"--at {at}: pixel (row {row}, col {col}) is outside the {W}x{H} image")
+    point = backproject(gb["depth"], fov)[0, row, col]
+    z = float(gb["depth"][0, row, col])
+    if not math.isfinite(z) or z <= 0:
+        raise InsertionError(f"--at {at}: no valid surface at that pixel (predicted depth {z})")
+    n = torch.nn.functional.normalize(gb["normal"][0, :, row, col], dim=0)
+    f = (W / 2) / math.tan(math.radians(fov) / 2)
+    r = float(radius) if radius is not None else z * (W / 16) / f
+    if not 0 < r < 10 * z:
+        raise InsertionError(f"--radius {radius}: must be positive and at most 10x the depth there ({z:.2f} m)")
+    spheres = object_spheres(kind, point, n, r)  # resting on the predicted surface, up = its normal
+    obj = object_gbuffer(spheres, gb["depth"][0], fov)
+    if obj is None:
+        raise InsertionError(f"--at {at}: the object would not be visible (behind the scene or outside the view)")
+    albedo, rough, metal = OBJECT_MATERIALS[material]
+    M = len(obj["pixel"])
+    shading = composite_gbuffer(
+        gb,
+        obj["pixel"],
+        albedo=torch.tensor(albedo).expand(M, 3),
+        material=torch.tensor([rough, metal]).expand(M, 2),
+        normal=obj["normal"].float(),
+        depth=obj["depth"].float(),
+    )
+    light = light_net_radiance(net, ctx, gb, fov, seed)
+    with torch.no_grad():
+        rgb = render_case(MCRenderLayer(spp=spp), shading, fov, obj["pixel"], light, seed)
+    return composite_image(photo_t, obj["pixel"], rgb), obj["pixel"]

@@ -242,3 +242,13 @@ def test_insert_and_edit_refuse_bad_input_naming_it_and_write_nothing(photos, ex
         err = capsys.readouterr().err
         assert needle.strip() in err and "Traceback" not in err, (needle, err)
         assert not any(out.parent.iterdir()), needle
+
+
+def test_cli_material_choices_are_the_scored_classes():
+    from pipeline.cli import MATERIAL_CLASSES
+    from pipeline.data.synth.cases import OBJECT_CLASSES
+    from pipeline.models.insertion import OBJECT_MATERIALS
+
+    assert set(MATERIAL_CLASSES) == set(OBJECT_MATERIALS) == set(OBJECT_CLASSES)
+    for name, (rough, metal) in OBJECT_CLASSES.items():  # the CLI inserts what the stage scores
+        assert OBJECT_MATERIALS[name][1:] == (rough, metal)

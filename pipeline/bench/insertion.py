@@ -1,0 +1,185 @@
+"""`python -m pipeline.bench.insertion`: what an object insertion costs and what its sample count buys.
+
+1. Seconds per insertion (`invrender insert` without file I/O: MaterialNet, LightNet's encoders, the
+   object's G-buffer and its pixels rendered through the MC layer under LightNet) at 160x120 and 320x240
+   against spp, on a test photo (upsampled for 320x240, the object covering the same share of the view).
+2. Accuracy against spp on the `edit` stage's test insertion cases: LightNet's render of each object
+   against the Mitsuba ground truth (PSNR, log-L1 on the object's pixels), every spp on the same cases
+   and seed, beside the seconds that spp takes per case.
+Needs the trained exports and `synthesize`'s cases (`dvc repro edit`). Writes reports/bench/insertion.json
+and a PNG: PSNR against seconds per insertion, one point per spp.
+"""
+
+from __future__ import annotations
+
+import argparse
+import time
+from pathlib import Path
+
+import matplotlib
+
+matplotlib.use("Agg")
+import matplotlib.pyplot as plt  # noqa: E402
+import numpy as np  # noqa: E402
+import torch  # noqa: E402
+from tqdm import tqdm  # noqa: E402
+
+from pipeline.bench.common import median_seconds, publish  # noqa: E402
+from pipeline.data import cases as case_io  # noqa: E402
+from pipeline.data import interiorverse as iv  # noqa: E402
+from pipeline.metrics.insertion import case_scores  # noqa: E402
+from pipeline.models.insertion import (  # noqa: E402
+    composite_gbuffer,
+    insert_into,
+    light_net_radiance,
+    prepare_scene,
+    render_case,
+)
+from pipeline.models.light_net import load_light_export  # noqa: E402
+from pipeline.models.light_net.branches import image_scale  # noqa: E402
+from pipeline.models.material_net import load_material_export, predict_maps  # noqa: E402
+from pipeline.models.render_layer import MCRenderLayer  # noqa: E402
+from pipeline.runs.edit import view_gbuffers  # noqa: E402
+
+SPP = (1, 2, 4, 8, 16, 32, 64)
+
+
+def _test_cases(root: Path) -> list[tuple[str, str]]:
+    return [
+        (s, v) for s in iv.read_split(root, "test") for v in iv.list_views(root, s) if case_io.has_cases(root, s, v)
+    ]
+
+
+def speed(root, material, light, resolutions, spps, repeats: int) -> list[dict]:
+    """Seconds per insertion of a mirror sphere at the centre of the first test photo."""
+    scene, view = _test_cases(root)[0]
+    im = iv.read_view(root, scene, view).maps["im"]
+    fov = float(iv.read_cameras(root, scene)[view]["fov_x_deg"])
+    rows = []
+    for H, W in resolutions:
+        x = torch.from_numpy(np.ascontiguousarray(im)).permute(2, 0, 1)[None]
+        photo = torch.nn.functional.interpolate(x, size=(H, W), mode="bilinear", align_corners=False)[0]
+        photo = np.ascontiguousarray(photo.permute(1, 2, 0).numpy())
+        for spp in spps:
+            pixels = {}
+
+            def insert(photo=photo, H=H, W=W, spp=spp, pixels=pixels):
+                prepared = prepare_scene(photo, *material, light, fov)
+                _, pix = insert_into(prepared, H // 2, W // 2, "sphere", "mirror", None, fov, spp, 0)
+                pixels["n"] = len(pix)
+
+            rows.append(
+                {
+                    "height": H,
+                    "width": W,
+                    "spp": spp,
+                    "seconds_per_insertion": median_seconds(insert, repeats),
+                    "object_pixels": pixels["n"],
+                }
+            )
+    return rows
+
+
+def accuracy(root, material, light, spps) -> dict:
+    """Mean PSNR / log-L1 of LightNet's object renders against Mitsuba over the test insertion cases, and
+    the render seconds per case, per spp (same cases, same seed)."""
+    net, meta = material
+    per_spp = {s: {"psnr": [], "log_l1": [], "seconds": 0.0} for s in spps}
+    views = _test_cases(root)
+    for scene, view in tqdm(views, desc="insertion accuracy", unit="view"):
+        maps = iv.read_view(root, scene, view).maps
+        H, W = maps["im"].shape[:2]
+        objects = [c for c in case_io.read_cases(root, scene, view, H, W) if c.kind == "object"]
+        fov = float(iv.read_cameras(root, scene)[view]["fov_x_deg"])
+        im = torch.from_numpy(np.ascontiguousarray(maps["im"])).float().permute(2, 0, 1)[None]
+        _, pred = view_gbuffers(maps, predict_maps(net, meta, maps["im"]))
+        with torch.no_grad():
+            ctx = light.encode(im, pred["depth"], fov)
+        scale = float(image_scale(im)[0])
+        photo = im[0].permute(1, 2, 0)
+        for c in objects:
+            shading = composite_gbuffer(
+                pred, c.pixel, albedo=c.albedo, material=c.material, normal=c.normal, depth=c.depth
+            )
+            for s in spps:
+                t0 = time.perf_counter()
+                with torch.no_grad():
+                    rgb = render_case(
+                        MCRenderLayer(spp=s), shading, fov, c.pixel, light_net_radiance(light, ctx, pred, fov, 0), 0
+                    )
+                per_spp[s]["seconds"] += time.perf_counter() - t0
+                sc = case_scores(rgb, c.radiance, photo, c.pixel, scale)
+                per_spp[s]["psnr"].append(sc["psnr"])
+                per_spp[s]["log_l1"].append(sc["log_l1"])
+    n = len(per_spp[spps[0]]["psnr"])
+    return {
+        "cases": n,
+        "rows": [
+            {
+                "spp": s,
+                "psnr": float(np.mean(v["psnr"])),
+                "psnr_sem": float(np.std(v["psnr"], ddof=1) / np.sqrt(n)) if n > 1 else float("nan"),
+                "log_l1": float(np.mean(v["log_l1"])),
+                "render_seconds_per_case": v["seconds"] / max(n, 1),
+            }
+            for s, v in per_spp.items()
+        ],
+    }
+
+
+def run(
+    root="outputs/synthesize",
+    material_path="outputs/train_material/model.pt",
+    light_path="outputs/train_lighting/model.pt",
+    repeats: int = 3,
+) -> dict:
+    root = Path(root)
+    material = load_material_export(material_path)
+    light, _ = load_light_export(light_path)
+    light.eval()
+    return {
+        "threads": torch.get_num_threads(),
+        "speed": speed(root, material, light, ((120, 160), (240, 320)), (4, 16, 64), repeats),
+        "accuracy": accuracy(root, material, light, SPP),
+    }
+
+
+def plot(report: dict, path) -> None:
+    fig, axes = plt.subplots(1, 2, figsize=(9, 3.4))
+    for H, W in sorted({(r["height"], r["width"]) for r in report["speed"]}):
+        rs = [r for r in report["speed"] if r["height"] == H]
+        axes[0].plot([r["spp"] for r in rs], [r["seconds_per_insertion"] for r in rs], "o-", label=f"{W}x{H}")
+    axes[0].set_xscale("log", base=2)
+    axes[0].set_xlabel("samples per pixel")
+    axes[0].set_ylabel("seconds per insertion (median)")
+    axes[0].legend(fontsize=7)
+    acc = report["accuracy"]["rows"]
+    ax = axes[1]
+    ax.errorbar(
+        [r["render_seconds_per_case"] for r in acc],
+        [r["psnr"] for r in acc],
+        yerr=[r["psnr_sem"] for r in acc],
+        fmt="o-",
+    )
+    for r in acc:
+        ax.annotate(f"{r['spp']} spp", (r["render_seconds_per_case"], r["psnr"]), fontsize=7)
+    ax.set_xscale("log")
+    ax.set_xlabel("render seconds per object (160x120)")
+    ax.set_ylabel(f"PSNR vs Mitsuba (dB, {report['accuracy']['cases']} test objects)")
+    fig.tight_layout()
+    fig.savefig(path, dpi=120)
+    plt.close(fig)
+
+
+def main(argv=None) -> None:
+    p = argparse.ArgumentParser(description=__doc__)
+    p.add_argument("--repeats", type=int, default=3)
+    p.add_argument("--root", default="outputs/synthesize")
+    p.add_argument("--material", default="outputs/train_material/model.pt")
+    p.add_argument("--light", default="outputs/train_lighting/model.pt")
+    a = p.parse_args(argv)
+    print(publish("insertion", run(a.root, a.material, a.light, a.repeats), plot))
+
+
+if __name__ == "__main__":
+    main()
