@@ -258,39 +258,26 @@ def edit_material(
     return _write_result(result, png, exr, Path(photo).suffix.lower() == ".exr")
 
 
+def _render_kwargs(args) -> dict:
+    """The options `insert` and `edit` share (`_add_render_args`)."""
+    return {
+        "fov": args.fov,
+        "spp": args.spp,
+        "seed": args.seed,
+        "material_path": args.material_net,
+        "light_path": args.light_net,
+    }
+
+
 def _insert(args) -> int:
-    for path in insert_object(
-        args.photo,
-        args.at,
-        args.out,
-        args.object,
-        args.material,
-        args.radius,
-        args.fov,
-        args.spp,
-        args.seed,
-        args.material_net,
-        args.light_net,
-    ):
-        print(path)
+    kwargs = {"kind": args.object, "material": args.material, "radius": args.radius, **_render_kwargs(args)}
+    print("\n".join(str(p) for p in insert_object(args.photo, args.at, args.out, **kwargs)))
     return 0
 
 
 def _edit(args) -> int:
-    for path in edit_material(
-        args.photo,
-        args.mask,
-        args.out,
-        args.roughness,
-        args.metallic,
-        args.albedo,
-        args.fov,
-        args.spp,
-        args.seed,
-        args.material_net,
-        args.light_net,
-    ):
-        print(path)
+    kwargs = {"roughness": args.roughness, "metallic": args.metallic, "albedo": args.albedo, **_render_kwargs(args)}
+    print("\n".join(str(p) for p in edit_material(args.photo, args.mask, args.out, **kwargs)))
     return 0
 
 

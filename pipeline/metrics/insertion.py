@@ -37,6 +37,16 @@ def case_scores(
     }
 
 
+def noise_floor_psnr(target: torch.Tensor, stderr: torch.Tensor, scale: float) -> float:
+    """The PSNR (dB) an exact render would be expected to score against a ground truth (M, 3) whose
+    pixels carry standard errors stderr (M, 3): the truth's own noise through the tone map's slope,
+    mean of (tonemap'(L) se)^2, with tonemap(L) = y / (1 + y), y = L / (2 scale)."""
+    y = target.double().clamp(min=0) / (2 * scale)
+    slope = 1 / (2 * scale * (1 + y) ** 2)
+    mse = ((slope * stderr.double()) ** 2).mean().clamp(min=1e-12)
+    return float(-10 * torch.log10(mse))
+
+
 def paired_bootstrap(diff, resamples: int = 2000, seed: int = 0, level: float = 0.95) -> dict[str, float]:
     """Mean of paired per-case differences (n,) and its percentile bootstrap interval (cases resampled
     with replacement). Returns {"diff", "lo", "hi", "n"}; lo = hi = diff for a single case."""

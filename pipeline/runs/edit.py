@@ -9,8 +9,10 @@ Rows, each rendering the same pixels with the same sample directions (one seed p
   and the same at the photo's exposure);
 - `nearest_probe`: the ground-truth free-point probe nearest to the case as a distant environment map
   (the best a single environment map can do, given the true light at one point);
-- `oracle`: Mitsuba's exact incident radiance for every sample ray (`data.synth.oracle`), on the
-  ground-truth G-buffers: validates the evaluation itself.
+- `oracle`: Mitsuba's incident radiance for every sample ray (`data.synth.oracle`, `oracle.paths` path
+  samples each), on the ground-truth G-buffers, at `oracle.spp` samples per pixel: validates the
+  evaluation itself. Its directions are its own: with exact light, a diffuse pixel under a small lamp
+  needs many directions, which at the rows' 16 spp would make the oracle the noisiest row.
 Objects bring their own exact G-buffers in every row; edits apply the new material to the predicted
 G-buffers (rows on predictions) or the ground truth (`lightnet_gt_gbuffers`, `oracle`).
 
@@ -40,7 +42,7 @@ from pipeline.data.synth import mitsuba_backend as mb
 from pipeline.data.synth.cases import InsertedObject, MaterialEdit
 from pipeline.data.synth.oracle import MitsubaOracle
 from pipeline.data.synth.scene import Room
-from pipeline.metrics.insertion import HIGHER_IS_BETTER, SCORES, case_scores, paired_bootstrap
+from pipeline.metrics.insertion import HIGHER_IS_BETTER, SCORES, case_scores, noise_floor_psnr, paired_bootstrap
 from pipeline.models.insertion import composite_gbuffer, composite_image, light_net_radiance, render_case
 from pipeline.models.light_net import load_light_export
 from pipeline.models.light_net.branches import image_scale
@@ -98,7 +100,7 @@ def case_centre(case: case_io.Case, gt: dict, fov: float, w2v: np.ndarray) -> to
 
 def score_view(ctx: dict, cases: list[case_io.Case], cfg: DictConfig) -> list[dict]:
     """Every row of every case of one view: [{"case", "rows": {row: scores}, "renders": {row: (M, 3)}}]."""
-    layer, fov, gt, pred, im, scale = ctx["layer"], ctx["fov"], ctx["gt"], ctx["pred"], ctx["im"], ctx["scale"]
+    fov, gt, pred, im, scale = ctx["fov"], ctx["gt"], ctx["pred"], ctx["im"], ctx["scale"]
     photo = im[0].permute(1, 2, 0)
     constants, free = ctx["constants"], ctx["light"].free
     net, seed = ctx["net"], int(cfg.render.seed)
@@ -132,11 +134,13 @@ def score_view(ctx: dict, cases: list[case_io.Case], cfg: DictConfig) -> list[di
         case_seed = seed * 1000 + len(out)
         for row in ROWS:
             shading = shade_gt if row in ("lightnet_gt_gbuffers", "oracle") else shade_pred
+            layer = ctx["oracle_layer"] if row == "oracle" else ctx["layer"]
             t0 = time.perf_counter()
             with torch.no_grad():
                 renders[row] = render_case(layer, shading, fov, case.pixel, rows_light[row], case_seed)
             seconds[row] = time.perf_counter() - t0
             scores[row] = case_scores(renders[row], case.radiance, photo, case.pixel, float(scale))
+        scores["ground_truth"] = {"noise_floor_psnr": noise_floor_psnr(case.radiance, case.stderr, float(scale))}
         out.append({"case": case, "rows": scores, "renders": renders, "seconds": seconds})
     return out
 
@@ -155,6 +159,10 @@ def summarise(records: list[dict], resamples: int, seed: int) -> dict[str, float
         for row in ROWS:
             for s in SCORES:
                 metrics[f"{group}/{row}/{s}"] = float(np.mean([r[f"{row}/{s}"] for r in rs]))
+        # what an exact render would score against this ground truth, given the truth's own noise
+        metrics[f"{group}/ground_truth/noise_floor_psnr"] = float(
+            np.mean([r["ground_truth/noise_floor_psnr"] for r in rs])
+        )
         for row in ROWS[1:]:
             for s in SCORES:
                 diff = [r[f"lightnet/{s}"] - r[f"{row}/{s}"] for r in rs]
@@ -205,7 +213,9 @@ def run(cfg: DictConfig) -> dict[str, float]:
     net.eval()
     train = ShardDataset(cfg.data_dir, "train", lighting=True)
     constants = mean_training_radiance(DataLoader(train, batch_size=16, collate_fn=collate_views))
-    layer = render_layer(OmegaConf.to_container(cfg.render, resolve=True), "eval_spp")
+    render = OmegaConf.to_container(cfg.render, resolve=True)
+    layer = render_layer(render, "eval_spp")
+    oracle_layer = render_layer({**render, "oracle_spp": int(cfg.oracle.spp)}, "oracle_spp")
     views = [(s, v) for s in iv.read_split(root, str(cfg.split)) for v in iv.list_views(root, s)]
     views = [sv for sv in views if case_io.has_cases(root, *sv)]
     if not views:
@@ -232,6 +242,7 @@ def run(cfg: DictConfig) -> dict[str, float]:
             with torch.no_grad():
                 ctx = {
                     "layer": layer,
+                    "oracle_layer": oracle_layer,
                     "fov": fov,
                     "gt": gt,
                     "pred": pred,
@@ -244,7 +255,7 @@ def run(cfg: DictConfig) -> dict[str, float]:
                     "ctx_gt": net.encode(im, gt["depth"], fov),
                     "w2v": np.asarray(camera["world_from_view"]),
                     "oracle": MitsubaOracle(
-                        room, room.cameras[int(view)], max_depth, int(cfg.oracle_spp), int(cfg.seed)
+                        room, room.cameras[int(view)], max_depth, int(cfg.oracle.paths), int(cfg.seed)
                     ),
                 }
             view_id = f"{scene}/{view}"
@@ -258,7 +269,8 @@ def run(cfg: DictConfig) -> dict[str, float]:
                 row["support"] = case.description.get("support", case.description.get("target"))
                 for name, sc in res["rows"].items():
                     row.update({f"{name}/{k}": v for k, v in sc.items()})
-                    seconds[name] += res["seconds"][name]
+                for name, t in res["seconds"].items():
+                    seconds[name] += t
                 records.append(row)
         metrics = summarise(records, int(cfg.bootstrap), int(cfg.seed))
         report.mkdir(parents=True, exist_ok=True)

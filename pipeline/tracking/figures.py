@@ -194,7 +194,7 @@ def insertion_grid(panels: list[dict], path: str | Path, title: str = "") -> Pat
         H, W = p["photo"].shape[:2]
         exposure = _input_exposure(p["photo"])
         rs, cs = _crop_box(p["pixels"], H, W)
-        row[0].imshow(tonemap(p["gt"], exposure))
+        row[0].imshow(tonemap(p["photo"], exposure))
         row[0].add_patch(
             plt.Rectangle(
                 (cs.start - 0.5, rs.start - 0.5), cs.stop - cs.start, rs.stop - rs.start, fill=False, ec="cyan"
