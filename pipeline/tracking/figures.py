@@ -173,13 +173,17 @@ def envmap_comparison(rows: list[dict], path: str | Path, title: str = "") -> Pa
 
 
 def _crop_box(pixels: np.ndarray, height: int, width: int, min_side: int = 24) -> tuple[slice, slice]:
-    """A square-ish window around flat pixels, 1.6x their extent and at least min_side, inside the image."""
+    """The window around flat pixels: their bounding box grown by a quarter of its size on each side,
+    at least min_side pixels a side, inside the image."""
+
+    def span(lo: int, hi: int, size: int) -> slice:
+        extent = hi - lo + 1
+        side = min(size, max(min_side, int(round(1.5 * extent))))
+        start = int(np.clip((lo + hi + 1) // 2 - side // 2, 0, size - side))
+        return slice(start, start + side)
+
     rows, cols = np.divmod(pixels, width)
-    side = int(max(min_side, 1.6 * max(rows.max() - rows.min() + 1, cols.max() - cols.min() + 1)))
-    side = min(side, height, width)
-    r0 = int(np.clip((rows.min() + rows.max()) // 2 - side // 2, 0, height - side))
-    c0 = int(np.clip((cols.min() + cols.max()) // 2 - side // 2, 0, width - side))
-    return slice(r0, r0 + side), slice(c0, c0 + side)
+    return span(rows.min(), rows.max(), height), span(cols.min(), cols.max(), width)
 
 
 def insertion_grid(panels: list[dict], path: str | Path, title: str = "") -> Path:
