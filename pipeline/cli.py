@@ -45,6 +45,45 @@ def _sheet(args) -> int:
     return 0
 
 
+MIN_SIDE, MAX_SIDE = 8, 4096  # pixels a side of an input photo (checked from its header, before decoding)
+
+
+def check_photo_size(path: str | Path) -> None:
+    """Refuse a photo smaller than MIN_SIDE or larger than MAX_SIDE pixels a side, reading only its header
+    (an 8000x8000 PNG would take gigabytes to decode). Unreadable headers are left to the decoder, which
+    names the file."""
+    path = Path(path)
+    size = None
+    try:
+        if path.suffix.lower() == ".exr":
+            import OpenEXR
+
+            with OpenEXR.File(str(path), header_only=True) as f:
+                (x0, y0), (x1, y1) = f.header()["dataWindow"]
+            size = (int(x1 - x0 + 1), int(y1 - y0 + 1))
+        else:
+            from PIL import Image
+
+            with Image.open(path) as img:
+                size = img.size
+    except Exception:  # noqa: BLE001 - any header failure is reported by the full decoder with the file named
+        return
+    if min(size) < MIN_SIDE or max(size) > MAX_SIDE:
+        raise EditError(f"{path}: {size[0]}x{size[1]} pixels; photos must be {MIN_SIDE} to {MAX_SIDE} pixels a side")
+
+
+def output_folder(out: str | Path) -> Path:
+    """The output folder, created if missing; refused (naming it) when it cannot be created or written."""
+    out = Path(out)
+    try:
+        out.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise EditError(f"--out {out}: cannot create the folder ({exc.strerror or exc})") from exc
+    if not os.access(out, os.W_OK):
+        raise EditError(f"--out {out}: the folder is not writable")
+    return out
+
+
 def output_name(path: Path) -> str:
     """The output prefix of an input: its stem without a trailing `_im` (InteriorVerse names)."""
     stem = path.stem
@@ -64,12 +103,13 @@ def predict_files(inputs: list[str | Path], out: str | Path, checkpoint: str | P
     from pipeline.tracking.figures import prediction_sheet
 
     net, meta = load_material_export(checkpoint)
+    for p in inputs:
+        check_photo_size(p)
     images = [(Path(p), read_linear(p)) for p in inputs]
     names = [output_name(p) for p, _ in images]
     if len(set(names)) != len(names):
         raise PhotoError(f"inputs map to the same output name: {sorted(names)}")
-    out = Path(out)
-    out.mkdir(parents=True, exist_ok=True)
+    out = output_folder(out)
     written = []
     for (path, im), name in zip(images, names, strict=True):
         maps = predict_maps(net, meta, im)
@@ -153,9 +193,10 @@ def _scene(photo: str | Path, material_path, light_path, fov: float):
         raise EditError(f"--fov {fov}: must be a horizontal field of view in degrees (1-170)")
     material_net, meta = load_material_export(material_path)
     light_net, _ = load_light_export(light_path)
+    check_photo_size(photo)
     im = read_linear(photo)
-    if min(im.shape[:2]) < 8 or max(im.shape[:2]) > 4096:
-        raise EditError(f"{photo}: {im.shape[1]}x{im.shape[0]} pixels; insert/edit take 8 to 4096 pixels a side")
+    if min(im.shape[:2]) < MIN_SIDE or max(im.shape[:2]) > MAX_SIDE:
+        raise EditError(f"{photo}: {im.shape[1]}x{im.shape[0]} pixels; photos must be {MIN_SIDE} to {MAX_SIDE} a side")
     if float(im.mean()) <= 0:
         raise EditError(f"{photo}: the image is black; there is no light to estimate")
     from pipeline.models.insertion import prepare_scene
@@ -306,8 +347,15 @@ def _whdr(args) -> int:
     return 0
 
 
+class _Parser(argparse.ArgumentParser):
+    """argparse with its usage errors on one line (`error: invrender insert: argument --at: ...`), exit 2."""
+
+    def error(self, message: str):
+        self.exit(2, f"error: {self.prog}: {message}\n")
+
+
 def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(prog="invrender", description=__doc__)
+    parser = _Parser(prog="invrender", description=__doc__)
     sub = parser.add_subparsers(dest="command", required=True)
     v = sub.add_parser("validate", help="check every view of an InteriorVerse-layout root")
     v.add_argument("root")
@@ -363,7 +411,9 @@ def main(argv: list[str] | None = None) -> int:
     try:
         return args.func(args)
     except (DatasetError, PhotoError, ExportError, IIWError, EditError, InsertionError) as exc:
-        print(f"error: {exc}", file=sys.stderr)
+        # one line: library messages (torch's unpickler, OpenEXR) can run to paragraphs
+        first = (str(exc).strip().splitlines() or [type(exc).__name__])[0]
+        print(f"error: {first}", file=sys.stderr)
         return 2
 
 

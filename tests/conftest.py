@@ -92,6 +92,32 @@ def micro_shards(micro_stage_paths, tmp_path_factory, worker_id) -> Path:
 
 
 @pytest.fixture(scope="session")
+def micro_exports(tmp_path_factory, worker_id):
+    """Untrained MaterialNet (`material.pt`, trained at 48x64, depth scale 3) and LightNet (`light.pt`)
+    exports of the micro profile's options, shared by all xdist workers: for the entry points that load
+    exports (insert, edit, predict, the edit stage), whose tests are about files and refusals."""
+    shared = _shared_dir(tmp_path_factory, worker_id)
+    out = shared / "micro_exports"
+    with FileLock(str(shared / "micro_exports.lock")):
+        if not (out / "light.pt").exists():
+            import torch
+            from omegaconf import OmegaConf
+
+            from pipeline.models.export import save_light_export, save_material_export
+            from pipeline.models.light_net import LightNet
+            from pipeline.models.material_net import MaterialNet
+
+            torch.manual_seed(0)
+            mk = OmegaConf.to_container(
+                compose_cfg("train_material", ["profile=micro"]).model.material_net, resolve=True
+            )
+            lk = OmegaConf.to_container(compose_cfg("train_lighting", ["profile=micro"]).model.light_net, resolve=True)
+            save_material_export(out / "material.pt", mk, MaterialNet(**mk), (48, 64), 3.0)
+            save_light_export(out / "light.pt", lk, LightNet(**lk))
+    return out
+
+
+@pytest.fixture(scope="session")
 def mitsuba_variant():
     """Set a Mitsuba variant in this test process (llvm when it works here, else scalar)."""
     from pipeline.data.synth import mitsuba_backend as mb

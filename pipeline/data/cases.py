@@ -18,8 +18,11 @@ import torch
 
 from pipeline.data.interiorverse import DatasetError
 
-OBJECT_ARRAYS = {"pixel": 1, "albedo": 2, "normal": 2, "depth_m": 1, "material": 2, "radiance": 2, "stderr": 2}
-EDIT_ARRAYS = {"pixel": 1, "albedo": 2, "material": 2, "radiance": 2, "stderr": 2}
+# array -> channels (None: one value per pixel)
+OBJECT_ARRAYS = {"pixel": None, "albedo": 3, "normal": 3, "depth_m": None, "material": 2, "radiance": 3, "stderr": 3}
+EDIT_ARRAYS = {"pixel": None, "albedo": 3, "material": 2, "radiance": 3, "stderr": 3}
+OBJECT_FIELDS = ("kind", "spheres", "material_class", "albedo", "roughness", "metallic", "support", "anchor_pixel")
+EDIT_FIELDS = ("kind", "target", "material_index", "albedo", "roughness", "metallic")
 
 
 @dataclass
@@ -56,13 +59,15 @@ def paths(root: str | Path, scene: str, view: str) -> tuple[Path, Path]:
 
 
 def write_cases(root: str | Path, scene: str, view: str, description: dict, arrays: dict[str, np.ndarray]) -> None:
+    """The arrays first, the description last: a view has cases once its JSON exists."""
     js, npz = paths(root, scene, view)
-    js.write_text(json.dumps(description, indent=1))
     np.savez_compressed(npz, **{k: np.ascontiguousarray(v) for k, v in arrays.items()})
+    js.write_text(json.dumps(description, indent=1))
 
 
 def has_cases(root: str | Path, scene: str, view: str) -> bool:
-    return paths(root, scene, view)[0].is_file()
+    """Either file marks a view with cases (`read_cases` then refuses a missing partner, naming it)."""
+    return any(p.is_file() for p in paths(root, scene, view))
 
 
 def read_cases(root: str | Path, scene: str, view: str, height: int, width: int) -> list[Case]:
@@ -74,8 +79,18 @@ def read_cases(root: str | Path, scene: str, view: str, height: int, width: int)
             raise DatasetError(f"{p}: missing (run synthesize with synth.cases.enabled=true)")
     try:
         desc = json.loads(js.read_text())
-    except json.JSONDecodeError as exc:
+    except (json.JSONDecodeError, UnicodeDecodeError) as exc:
         raise DatasetError(f"{js}: not valid JSON ({exc})") from exc
+    if not isinstance(desc, dict):
+        raise DatasetError(f"{js}: expected a JSON object with `objects` and `edits`")
+    for key, fields in (("objects", OBJECT_FIELDS), ("edits", EDIT_FIELDS)):
+        entries = desc.get(key, [])
+        if not isinstance(entries, list) or not all(isinstance(e, dict) for e in entries):
+            raise DatasetError(f"{js}: `{key}` must be a list of objects")
+        for i, e in enumerate(entries):
+            missing = [f for f in fields if f not in e]
+            if missing:
+                raise DatasetError(f"{js}: {key}[{i}] lacks {missing}")
     try:
         with np.load(npz, allow_pickle=False) as z:
             arrays = {k: z[k] for k in z.files}
@@ -93,13 +108,14 @@ def read_cases(root: str | Path, scene: str, view: str, height: int, width: int)
     ):
         for i, entry in enumerate(entries):
             a = {}
-            for key, ndim in spec.items():
+            for key, channels in spec.items():
                 full = f"{kind}{i}_{key}"
-                if full not in arrays:
+                if full not in arrays or f"{kind}{i}_pixel" not in arrays:
                     raise DatasetError(f"{npz}: lacks {full!r} for {kind} {i} of {js.name}")
                 a[key] = arrays[full]
-                if a[key].ndim != ndim or len(a[key]) != len(arrays[f"{kind}{i}_pixel"]):
-                    raise DatasetError(f"{npz}: {full} has shape {a[key].shape}, inconsistent with {kind}{i}_pixel")
+                want = (len(arrays[f"{kind}{i}_pixel"]),) + (() if channels is None else (channels,))
+                if a[key].shape != want:
+                    raise DatasetError(f"{npz}: {full} has shape {a[key].shape}, expected {want}")
                 if not np.isfinite(a[key]).all():
                     raise DatasetError(f"{npz}: {full} has NaN/inf values")
             pix = a["pixel"].astype(np.int64)

@@ -8,7 +8,6 @@ from pathlib import Path
 import numpy as np
 import pytest
 import torch
-from omegaconf import OmegaConf
 
 from tests.conftest import compose_cfg
 
@@ -16,19 +15,8 @@ pytestmark = pytest.mark.slow
 
 
 @pytest.fixture(scope="module")
-def exports(tmp_path_factory, micro_shards):
-    """Untrained MaterialNet and LightNet exports of the micro profile's options."""
-    from pipeline.models.export import save_light_export, save_material_export
-    from pipeline.models.light_net import LightNet
-    from pipeline.models.material_net import MaterialNet
-
-    out = tmp_path_factory.mktemp("exports")
-    torch.manual_seed(0)
-    mk = OmegaConf.to_container(compose_cfg("train_material", ["profile=micro"]).model.material_net, resolve=True)
-    lk = OmegaConf.to_container(compose_cfg("train_lighting", ["profile=micro"]).model.light_net, resolve=True)
-    save_material_export(out / "material.pt", mk, MaterialNet(**mk), (48, 64), 3.0)
-    save_light_export(out / "light.pt", lk, LightNet(**lk))
-    return out
+def exports(micro_exports):
+    return micro_exports
 
 
 def test_stage_scores_every_row_with_paired_intervals(micro_root, micro_shards, exports, tmp_path):

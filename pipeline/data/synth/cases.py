@@ -47,7 +47,7 @@ class CaseConfig:
     min_pixels: int = 30  # an object case needs this many visible pixels
     edit_fraction: tuple[float, float] = (0.01, 0.2)  # an edit covers this share of the view
     floating_probability: float = 0.35
-    attempts: int = 60  # placements tried per object before giving up on it
+    attempts: int = 60  # placements tried per object and round (3 rounds) before giving up on it
 
 
 @dataclass
@@ -73,7 +73,7 @@ class MaterialEdit:
     replaced."""
 
     kind: str  # metal | albedo
-    target: str  # furniture | floor
+    target: str  # furniture | floor | wall (walls only where a view has no other candidate)
     material_index: int
     albedo: list[float] | None = None
     roughness: float | None = None
@@ -226,11 +226,13 @@ def _place_object(scene, camera, gb, kind, cls, rng, cfg: CaseConfig) -> Inserte
     resting_px = np.flatnonzero(valid & (normal_world[:, 1] > 0.97))
     floating_px = np.flatnonzero(valid & (t > 1.5))
     px_scale = width / 160.0  # radius_px is given for 160-pixel-wide views
+    if not len(resting_px) and not len(floating_px):
+        return None
     for _ in range(cfg.attempts):
-        floating = rng.uniform() < cfg.floating_probability or not len(resting_px)
+        floating = rng.uniform() < cfg.floating_probability
+        if not len(floating_px if floating else resting_px):  # the other placement where one has no pixel
+            floating = not floating
         pool = floating_px if floating else resting_px
-        if not len(pool):
-            return None
         p = int(pool[rng.integers(len(pool))])
         frac = float(rng.uniform(0.35, 0.65)) if floating else 1.0
         radius = float(np.clip(rng.uniform(*cfg.radius_px) * px_scale * z[p] * frac / f, 0.05, 0.35))
@@ -269,7 +271,7 @@ def _edit_candidates(room: Room, camera: Camera, gb: dict, cfg: CaseConfig) -> d
     """{material index: flat pixels (M,)} of every furniture or floor material covering an acceptable share
     of the view. One intersection pass with each candidate material given a unique sentinel colour."""
     height, width = gb["mask"].shape
-    roles = {s.material: s.role for s in room.shapes if s.role in ("furniture", "floor")}
+    roles = {s.material: s.role for s in room.shapes if s.role in ("furniture", "floor", "wall")}
     probe = copy.deepcopy(room)
     code = {}
     for k, m in enumerate(sorted(roles)):
@@ -281,17 +283,22 @@ def _edit_candidates(room: Room, camera: Camera, gb: dict, cfg: CaseConfig) -> d
     hit = mb.intersect(scene, origins, dirs)
     valid = (gb["mask"].reshape(-1) > 0) & hit["hit"]
     is_probe = valid & (np.abs(hit["roughness"] - 0.777) < 1e-4) & (np.abs(hit["albedo"][:, 2] - 0.123) < 1e-4)
-    out = {}
+    shares = {}
     for m, c in code.items():
         pix = np.flatnonzero(is_probe & (np.abs(hit["albedo"][:, 0] - c) < 1e-4))
-        share = len(pix) / (height * width)
-        if cfg.edit_fraction[0] <= share <= cfg.edit_fraction[1]:
-            out[m] = pix
-    return out
+        shares[m] = (len(pix) / (height * width), pix)
+    lo, hi = cfg.edit_fraction
+    # furniture and floor within the share range; the walls (one material for all of them) and shares
+    # outside it only when a view has nothing else, so that every view gets its edits
+    for allowed, a, b in ((("furniture", "floor"), lo, hi), (("furniture", "floor", "wall"), 0.003, 0.6)):
+        out = {m: pix for m, (share, pix) in shares.items() if roles[m] in allowed and a <= share <= b}
+        if out:
+            return out
+    return {}
 
 
 def _draw_edit(room: Room, m: int, kind: str, rng) -> MaterialEdit:
-    target = "floor" if any(s.material == m and s.role == "floor" for s in room.shapes) else "furniture"
+    target = next(s.role for s in room.shapes if s.material == m)
     if kind == "metal":
         return MaterialEdit(kind, target, m, albedo=metal_colour(rng), roughness=0.1, metallic=1.0)
     return MaterialEdit(kind, target, m, albedo=hsv_colour(rng, (0.0, 1.0), (0.4, 0.9), (0.2, 0.8)))
@@ -308,11 +315,15 @@ def generate_cases(
     kinds = ["sphere", "snowman"] + [OBJECT_KINDS[int(rng.integers(2))] for _ in range(max(0, n_obj - 2))]
     classes = [list(OBJECT_CLASSES)[i] for i in rng.permutation(len(OBJECT_CLASSES))]
     for k, kind in enumerate(kinds[:n_obj]):
-        obj = _place_object(scene, camera, gb, kind, classes[k % len(classes)], rng, cfg)
+        for _round in range(3):  # a placement can be rejected as too hidden: draw another
+            obj = _place_object(scene, camera, gb, kind, classes[k % len(classes)], rng, cfg)
+            if obj is None:
+                break
+            g = _object_gbuffer(mb.load_scene(_object_only_room(room, obj)), camera, gb["t"], width, height)
+            if g is not None and len(g["pixel"]) >= cfg.min_pixels and g.pop("occluded_fraction") <= 0.5:
+                break
+            obj = None
         if obj is None:
-            continue
-        g = _object_gbuffer(mb.load_scene(_object_only_room(room, obj)), camera, gb["t"], width, height)
-        if g is None or len(g["pixel"]) < cfg.min_pixels or g.pop("occluded_fraction") > 0.5:
             continue
         full = mb.load_scene(room_with_object(room, obj), max_depth)
         o, d = _camera_rays(camera, width, height, g["pixel"])
