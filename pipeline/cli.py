@@ -148,6 +148,15 @@ def _parse_floats(text: str, n: int, name: str) -> tuple[float, ...]:
     return vals
 
 
+def _parse_pixel(text: str) -> tuple[int, int]:
+    """`--at ROW,COL` as two integers."""
+    try:
+        row, col = (int(v) for v in text.split(","))
+    except ValueError:
+        raise EditError(f"--at {text!r}: expected ROW,COL as two integers (pixel row and column)") from None
+    return row, col
+
+
 def _output_paths(out: str | Path) -> tuple[Path, Path]:
     """(PNG, EXR) paths of an --out FILE (.png or .exr); its folder must exist and be writable."""
     out = Path(out)
@@ -155,7 +164,11 @@ def _output_paths(out: str | Path) -> tuple[Path, Path]:
         raise EditError(f"--out {out}: give a .png or .exr file name (both are written)")
     if not out.parent.is_dir() or not os.access(out.parent, os.W_OK):
         raise EditError(f"--out {out}: folder {out.parent} does not exist or is not writable")
-    return out.with_suffix(".png"), out.with_suffix(".exr")
+    pair = out.with_suffix(".png"), out.with_suffix(".exr")
+    for p in pair:
+        if p.is_dir():
+            raise EditError(f"--out {out}: {p} is a folder")
+    return pair
 
 
 def _write_result(image, png: Path, exr: Path, hdr_input: bool) -> list[Path]:
@@ -176,6 +189,8 @@ def _write_result(image, png: Path, exr: Path, hdr_input: bool) -> list[Path]:
         Image.fromarray(np.round(display * 255).astype(np.uint8)).save(tmp_png, format="PNG")
         os.replace(tmp_exr, exr)
         os.replace(tmp_png, png)
+    except OSError as exc:
+        raise EditError(f"--out {png.with_suffix('')}: cannot write ({exc.strerror or exc})") from exc
     finally:
         for t in (tmp_png, tmp_exr):
             t.unlink(missing_ok=True)
@@ -228,7 +243,7 @@ def insert_object(
         raise EditError(f"--material {material!r}: choose one of {sorted(OBJECT_MATERIALS)}")
     if spp < 1:
         raise EditError(f"--spp {spp}: must be >= 1")
-    row, col = (int(v) for v in _parse_floats(at, 2, "--at"))
+    row, col = _parse_pixel(at)
     scene = _scene(photo, material_path, light_path, fov)
     result, _ = insert_into(scene, row, col, kind, material, radius, fov, spp, seed)
     return _write_result(result.numpy(), png, exr, Path(photo).suffix.lower() == ".exr")

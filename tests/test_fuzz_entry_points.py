@@ -50,7 +50,7 @@ def good(tmp_path_factory, micro_exports):
 def _run(argv: list[str], capsys, out_dir: Path, name: str, status: int = 2) -> str:
     """Run the CLI; check the status, one error line naming something, no traceback, nothing written."""
     before = sorted(out_dir.rglob("*")) if out_dir.exists() else []
-    CASES_TRIED[name] += 1
+    CASES_TRIED[name.strip()] += 1
     try:
         code = main(argv)
     except SystemExit as exc:  # argparse's usage errors
@@ -210,7 +210,7 @@ def test_wrong_truncated_and_malicious_exports_are_refused(good, tmp_path, capsy
             assert (needle if not (name == "edit" and needle == "light.pt") else "material.pt") in err, err
     assert not marker.exists(), "unpickling ran the payload"
     insert = ["insert", photo, "--out", str(out / "i.png"), "--material-net", m, "--light-net", li]
-    for at in ("48,3", "3,64", "-1,3", "a,b", "3", "1e9,2"):
+    for at in ("48,3", "3,64", "-1,3", "a,b", "3", "1e9,2", "12.7,3"):
         assert "--at" in _run([*insert, "--at", at], capsys, out, "insert")
 
 
@@ -230,6 +230,7 @@ def test_masks_of_the_wrong_size_are_refused(good, tmp_path_factory, capsys, h, 
 
 def test_unwritable_outputs_are_refused(good, tmp_path, capsys):
     (tmp_path / "file").write_text("a file, not a folder")
+    (tmp_path / "taken.exr").mkdir()  # insert would write taken.png and taken.exr: one is a folder
     photo = str(good["dir"] / "photo.png")
     m, li = str(good["material"]), str(good["light"])
     for name, argv in {
@@ -238,6 +239,8 @@ def test_unwritable_outputs_are_refused(good, tmp_path, capsys):
         + ["--light-net", li],
         "edit": ["edit", photo, "--mask", str(good["dir"] / "mask.png"), "--metallic", "1"]
         + ["--out", str(tmp_path / "nowhere" / "x.exr"), "--material-net", m, "--light-net", li],
+        "insert ": ["insert", photo, "--at", "5,5", "--out", str(tmp_path / "taken.png"), "--material-net", m]
+        + ["--light-net", li],
     }.items():
         assert "--out" in _run(argv, capsys, tmp_path, name)
 

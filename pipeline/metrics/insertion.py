@@ -47,16 +47,26 @@ def noise_floor_psnr(target: torch.Tensor, stderr: torch.Tensor, scale: float) -
     return float(-10 * torch.log10(mse))
 
 
-def paired_bootstrap(diff, resamples: int = 2000, seed: int = 0, level: float = 0.95) -> dict[str, float]:
-    """Mean of paired per-case differences (n,) and its percentile bootstrap interval (cases resampled
-    with replacement). Returns {"diff", "lo", "hi", "n"}; lo = hi = diff for a single case."""
+def paired_bootstrap(diff, resamples: int = 2000, seed: int = 0, level: float = 0.95, groups=None) -> dict[str, float]:
+    """Mean of paired per-case differences (n,) and its percentile bootstrap interval. With `groups` (n,)
+    (the view each case comes from) whole groups are resampled with replacement, since cases of one view
+    share its photo, its predictions and so their errors; else single cases. Returns {"diff", "lo", "hi",
+    "n"}; with fewer than two groups there is no spread to resample and lo, hi are NaN."""
     d = np.asarray(diff, np.float64)
     if d.ndim != 1 or not len(d):
         raise ValueError(f"paired_bootstrap: need a non-empty 1-D array of differences, got shape {d.shape}")
     if not np.isfinite(d).all():
         raise ValueError("paired_bootstrap: differences hold NaN/inf")
-    rng = np.random.default_rng(seed)
-    means = d[rng.integers(0, len(d), size=(resamples, len(d)))].mean(1)
+    labels = np.arange(len(d)) if groups is None else np.unique(np.asarray(groups), return_inverse=True)[1]
+    if len(labels) != len(d):
+        raise ValueError(f"paired_bootstrap: {len(labels)} group labels for {len(d)} differences")
+    k = int(labels.max()) + 1
+    out = {"diff": float(d.mean()), "n": float(len(d))}
+    if k < 2:
+        return {**out, "lo": float("nan"), "hi": float("nan")}
+    sums, counts = np.bincount(labels, d, k), np.bincount(labels, minlength=k).astype(np.float64)
+    draws = np.random.default_rng(seed).integers(0, k, size=(resamples, k))
+    means = sums[draws].sum(1) / counts[draws].sum(1)
     tail = (1 - level) / 2 * 100
     lo, hi = np.percentile(means, [tail, 100 - tail])
-    return {"diff": float(d.mean()), "lo": float(lo), "hi": float(hi), "n": float(len(d))}
+    return {**out, "lo": float(lo), "hi": float(hi)}

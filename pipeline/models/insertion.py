@@ -152,6 +152,8 @@ def insert_into(
     if not math.isfinite(z) or z <= 0:
         raise InsertionError(f"--at {at}: no valid surface at that pixel (predicted depth {z})")
     n = torch.nn.functional.normalize(gb["normal"][0, :, row, col], dim=0)
+    if float(n @ point) > 0:  # a surface seen from behind (a prediction error): stand on its visible side
+        n = -n
     f = (W / 2) / math.tan(math.radians(fov) / 2)
     r = float(radius) if radius is not None else z * (W / 16) / f
     if not 0 < r < 10 * z:

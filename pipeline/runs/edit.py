@@ -2,7 +2,9 @@
 held-out views are re-rendered through the MC render layer with LightNet as the incident radiance, and
 scored against Mitsuba renders of the same cases (written by `synthesize`, `pipeline.data.cases`).
 
-Rows, each rendering the same pixels with the same sample directions (one seed per case):
+Rows, each rendering the same pixels (one seed per case, its own per view; rows on the same shading
+G-buffers draw the same directions: every row of an object case but the oracle, and the rows on
+predicted G-buffers of an edit):
 - `lightnet`: LightNet on the photo and the frozen MaterialNet's G-buffers (the method);
 - `lightnet_gt_gbuffers`: LightNet on the ground-truth G-buffers (what a perfect MaterialNet would give);
 - `constant`, `scaled_constant`: the content-blind lights of `train_lighting` (mean training radiance,
@@ -16,9 +18,14 @@ Rows, each rendering the same pixels with the same sample directions (one seed p
 Objects bring their own exact G-buffers in every row; edits apply the new material to the predicted
 G-buffers (rows on predictions) or the ground truth (`lightnet_gt_gbuffers`, `oracle`).
 
-Writes `reports/edit/metrics.json` (means per material class and edit kind, paired bootstrap intervals
-of LightNet minus every other row), `cases.csv` (every case and row), `timings.json`, `insertion.png`
-and `editing.png` (figure grids), all also to MLflow.
+Writes `reports/edit/metrics.json` (means per material class and edit kind; LightNet minus every other
+row with a paired bootstrap interval that resamples views, whose cases share a photo and predictions,
+and a verdict: +1 better, -1 worse, 0 no difference or a single view), `cases.csv` (every case and
+row), `timings.json`, `insertion.png` and `editing.png` (figure grids), all also to MLflow.
+
+Objects are placed where they truly are (their ground-truth G-buffers) in every row, so the LightNet
+row measures the light at that point as the method sees the scene: its SSRT marches the predicted depth
+(metres through the export's depth scale; zero outside the view's valid mask, as in `train_lighting`).
 """
 
 from __future__ import annotations
@@ -26,6 +33,7 @@ from __future__ import annotations
 import csv
 import json
 import time
+import zlib
 from pathlib import Path
 
 import numpy as np
@@ -103,7 +111,7 @@ def score_view(ctx: dict, cases: list[case_io.Case], cfg: DictConfig) -> list[di
     fov, gt, pred, im, scale = ctx["fov"], ctx["gt"], ctx["pred"], ctx["im"], ctx["scale"]
     photo = im[0].permute(1, 2, 0)
     constants, free = ctx["constants"], ctx["light"].free
-    net, seed = ctx["net"], int(cfg.render.seed)
+    net, seed = ctx["net"], int(ctx["seed"])
     lights = {
         "lightnet": light_net_radiance(net, ctx["ctx_pred"], pred, fov, seed),
         "lightnet_gt_gbuffers": light_net_radiance(net, ctx["ctx_gt"], gt, fov, seed),
@@ -131,7 +139,7 @@ def score_view(ctx: dict, cases: list[case_io.Case], cfg: DictConfig) -> list[di
             "oracle": oracle,
         }
         renders, scores, seconds = {}, {}, {}
-        case_seed = seed * 1000 + len(out)
+        case_seed = seed + 7919 * len(out)
         for row in ROWS:
             shading = shade_gt if row in ("lightnet_gt_gbuffers", "oracle") else shade_pred
             layer = ctx["oracle_layer"] if row == "oracle" else ctx["layer"]
@@ -166,9 +174,13 @@ def summarise(records: list[dict], resamples: int, seed: int) -> dict[str, float
         for row in ROWS[1:]:
             for s in SCORES:
                 diff = [r[f"lightnet/{s}"] - r[f"{row}/{s}"] for r in rs]
-                ci = paired_bootstrap(diff, resamples, seed)
-                for k in ("diff", "lo", "hi"):
-                    metrics[f"{group}/lightnet_minus_{row}/{s}_{k}"] = ci[k]
+                ci = paired_bootstrap(diff, resamples, seed, groups=[r["view"] for r in rs])
+                metrics[f"{group}/lightnet_minus_{row}/{s}_diff"] = ci["diff"]
+                if not np.isfinite(ci["lo"]):  # one view: no interval, and no verdict either way
+                    metrics[f"{group}/lightnet_minus_{row}/{s}_verdict"] = 0.0
+                    continue
+                metrics[f"{group}/lightnet_minus_{row}/{s}_lo"] = ci["lo"]
+                metrics[f"{group}/lightnet_minus_{row}/{s}_hi"] = ci["hi"]
                 better = ci["lo"] > 0 if HIGHER_IS_BETTER[s] else ci["hi"] < 0
                 worse = ci["hi"] < 0 if HIGHER_IS_BETTER[s] else ci["lo"] > 0
                 metrics[f"{group}/lightnet_minus_{row}/{s}_verdict"] = 1.0 if better else (-1.0 if worse else 0.0)
@@ -204,62 +216,94 @@ def _dataset_record(root: Path) -> dict:
         raise iv.DatasetError(f"{path}: cannot read the generator's record ({exc})") from exc
 
 
-def run(cfg: DictConfig) -> dict[str, float]:
-    import mlflow
+def view_seed(seed: int, view_id: str) -> int:
+    """A seed of its own for every view (and so every case), stable across runs: Monte Carlo errors of
+    different views are independent, as the bootstrap over views assumes."""
+    return (int(seed) * 1_000_003 + zlib.crc32(view_id.encode())) & 0x7FFFFFFF
 
-    root, report = Path(cfg.data_root), Path(cfg.report_dir)
+
+def stage_setup(cfg: DictConfig) -> dict:
+    """What every view shares: both networks, the constant lights, the render layers, the view list and
+    the views' `max_depth` (the oracle traces as the views were rendered). Sets the Mitsuba variant."""
+    root = Path(cfg.data_root)
     material_net, material_meta = load_material_export(cfg.material_path)
     net, _ = load_light_export(cfg.light_path)
-    net.eval()
     train = ShardDataset(cfg.data_dir, "train", lighting=True)
-    constants = mean_training_radiance(DataLoader(train, batch_size=16, collate_fn=collate_views))
     render = OmegaConf.to_container(cfg.render, resolve=True)
-    layer = render_layer(render, "eval_spp")
-    oracle_layer = render_layer({**render, "oracle_spp": int(cfg.oracle.spp)}, "oracle_spp")
     views = [(s, v) for s in iv.read_split(root, str(cfg.split)) for v in iv.list_views(root, s)]
     views = [sv for sv in views if case_io.has_cases(root, *sv)]
     if not views:
         raise iv.DatasetError(f"{root}: no {cfg.split} view has insertion/editing cases (synth.cases.enabled)")
-    max_depth = int(_dataset_record(root)["config"]["max_depth"])  # the oracle traces as the views were rendered
     mb.init_mitsuba(mb.choose_variant("auto"))
+    return {
+        "root": root,
+        "material": (material_net, material_meta),
+        "net": net.eval(),
+        "constants": mean_training_radiance(DataLoader(train, batch_size=16, collate_fn=collate_views)),
+        "layer": render_layer(render, "eval_spp"),
+        "oracle_layer": render_layer({**render, "oracle_spp": int(cfg.oracle.spp)}, "oracle_spp"),
+        "views": views,
+        "max_depth": int(_dataset_record(root)["config"]["max_depth"]),
+    }
+
+
+def view_context(shared: dict, scene: str, view: str, cfg: DictConfig) -> tuple[dict, list[case_io.Case]]:
+    """One view read and checked, its G-buffers predicted, LightNet's contexts and the oracle built:
+    (the context `score_view` takes, the view's cases)."""
+    root, split = shared["root"], str(cfg.split)
+    check = iv.read_view(root, scene, view)
+    if check.maps is None:
+        raise iv.DatasetError(f"{root}/{scene}/{view}: {check.rejections(split)}")
+    maps = check.maps
+    H, W = maps["im"].shape[:2]
+    cases = case_io.read_cases(root, scene, view, H, W)
+    camera = (iv.read_cameras(root, scene) or {}).get(view)
+    if camera is None:
+        raise iv.DatasetError(f"{root}/{scene}/cameras.json: no camera for view {view}")
+    light_file = iv.light_path(root, scene, view)
+    light = ViewLighting.from_arrays(iv.read_light(light_file))
+    if not len(light.free):
+        raise iv.DatasetError(f"{light_file}: no free-point probe (the nearest-probe row needs one)")
+    room = Room.from_json(json.loads((root / scene / "scene.json").read_text()))
+    fov = float(camera["fov_x_deg"])
+    im = torch.from_numpy(np.ascontiguousarray(maps["im"])).float().permute(2, 0, 1)[None]
+    gt, pred = view_gbuffers(maps, predict_maps(*shared["material"], maps["im"]))
+    net, view_id = shared["net"], f"{scene}/{view}"
+    seed = view_seed(int(cfg.render.seed), view_id)
+    with torch.no_grad():
+        ctx = {
+            "id": view_id,
+            "seed": seed,
+            "layer": shared["layer"],
+            "oracle_layer": shared["oracle_layer"],
+            "fov": fov,
+            "gt": gt,
+            "pred": pred,
+            "im": im,
+            "scale": image_scale(im)[0],
+            "constants": shared["constants"],
+            "light": light,
+            "net": net,
+            "ctx_pred": net.encode(im, pred["depth"], fov),
+            "ctx_gt": net.encode(im, gt["depth"], fov),
+            "w2v": np.asarray(camera["world_from_view"]),
+            "oracle": MitsubaOracle(room, room.cameras[int(view)], shared["max_depth"], int(cfg.oracle.paths), seed),
+        }
+    return ctx, cases
+
+
+def run(cfg: DictConfig) -> dict[str, float]:
+    import mlflow
+
+    report = Path(cfg.report_dir)
+    shared = stage_setup(cfg)
     records, results, photo_of, seconds = [], [], {}, {row: 0.0 for row in ROWS}
     t_start = time.perf_counter()
     with stage_run("edit", cfg, tags={"data_source": "synthetic", "split": str(cfg.split)}):
-        for scene, view in tqdm(views, desc="edit", unit="view", disable=not cfg.progress):
-            check = iv.read_view(root, scene, view)
-            if check.maps is None:
-                raise iv.DatasetError(f"{root}/{scene}/{view}: {check.rejections(str(cfg.split))}")
-            maps = check.maps
-            H, W = maps["im"].shape[:2]
-            cases = case_io.read_cases(root, scene, view, H, W)
-            camera = (iv.read_cameras(root, scene) or {}).get(view)
-            if camera is None:
-                raise iv.DatasetError(f"{root}/{scene}/cameras.json: no camera for view {view}")
-            room = Room.from_json(json.loads((root / scene / "scene.json").read_text()))
-            fov = float(camera["fov_x_deg"])
-            im = torch.from_numpy(np.ascontiguousarray(maps["im"])).float().permute(2, 0, 1)[None]
-            gt, pred = view_gbuffers(maps, predict_maps(material_net, material_meta, maps["im"]))
-            with torch.no_grad():
-                ctx = {
-                    "layer": layer,
-                    "oracle_layer": oracle_layer,
-                    "fov": fov,
-                    "gt": gt,
-                    "pred": pred,
-                    "im": im,
-                    "scale": image_scale(im)[0],
-                    "constants": constants,
-                    "light": ViewLighting.from_arrays(iv.read_light(iv.light_path(root, scene, view))),
-                    "net": net,
-                    "ctx_pred": net.encode(im, pred["depth"], fov),
-                    "ctx_gt": net.encode(im, gt["depth"], fov),
-                    "w2v": np.asarray(camera["world_from_view"]),
-                    "oracle": MitsubaOracle(
-                        room, room.cameras[int(view)], max_depth, int(cfg.oracle.paths), int(cfg.seed)
-                    ),
-                }
-            view_id = f"{scene}/{view}"
-            photo_of[view_id] = (im[0].permute(1, 2, 0), ctx["scale"], view_id)
+        for scene, view in tqdm(shared["views"], desc="edit", unit="view", disable=not cfg.progress):
+            ctx, cases = view_context(shared, scene, view, cfg)
+            view_id = ctx["id"]
+            photo_of[view_id] = (ctx["im"][0].permute(1, 2, 0), ctx["scale"], view_id)
             for res in score_view(ctx, cases, cfg):
                 case = res["case"]
                 res["view"] = view_id
@@ -272,6 +316,8 @@ def run(cfg: DictConfig) -> dict[str, float]:
                 for name, t in res["seconds"].items():
                     seconds[name] += t
                 records.append(row)
+        if not records:
+            raise iv.DatasetError(f"{shared['root']}: the {cfg.split} views' case files list no case")
         metrics = summarise(records, int(cfg.bootstrap), int(cfg.seed))
         report.mkdir(parents=True, exist_ok=True)
         with open(report / "cases.csv", "w", newline="") as fh:

@@ -37,9 +37,23 @@ def test_val_and_test_views_have_cases_and_train_views_none(micro_root):
             assert len(obj["spheres"]) == (1 if obj["kind"] == "sphere" else 2)
 
 
+def _distance_to_shape(p: np.ndarray, shape) -> float:
+    """Exact distance (m) from a point to a room primitive of `scene.json` (negative inside a sphere, 0 inside
+    a box): the generator's ray-based clearance checked against the geometry itself."""
+    m = np.asarray(shape.to_world)
+    a, c = m[:3, :3], m[:3, 3]
+    if shape.kind == "sphere":
+        return float(np.linalg.norm(p - c) - np.linalg.norm(a[:, 0]))
+    half = np.linalg.norm(a, axis=0)
+    axes = a / half
+    local = axes.T @ (p - c)
+    if shape.kind == "rectangle":
+        half = np.array([half[0], half[1], 0.0])
+    return float(np.linalg.norm(local - np.clip(local, -half, half)))
+
+
 def test_objects_are_clear_of_the_room_and_resting_ones_stand_on_a_surface(micro_root, mitsuba_variant):
     from pipeline.data.synth import mitsuba_backend as mb
-    from pipeline.data.synth.cases import clearance
     from pipeline.data.synth.scene import Room
     from pipeline.ops.primitives import LIFT_M
 
@@ -51,7 +65,8 @@ def test_objects_are_clear_of_the_room_and_resting_ones_stand_on_a_surface(micro
             if c.kind != "object":
                 continue
             for x, y, z, r in c.description["spheres"]:
-                assert clearance(scene, np.array([x, y, z])) >= r, (s, v, c.name)
+                gap = min(_distance_to_shape(np.array([x, y, z]), shape) for shape in room.shapes) - r
+                assert gap > 0, (s, v, c.name, gap)
             if c.description["support"] == "resting":
                 x, y, z, r = c.description["spheres"][0]
                 foot = np.array([[x, y - r + 0.01, z]])
@@ -82,8 +97,10 @@ def test_object_gbuffers_match_analytic_ray_casting(micro_root):
             view = np.concatenate([(world[:, :3] - w2v[:3, 3]) @ w2v[:3, :3], world[:, 3:]], 1)
             g = object_gbuffer(torch.from_numpy(view), depth, float(cam["fov_x_deg"]))
             same = np.intersect1d(g["pixel"].numpy(), c.pixel.numpy())
-            # pixel sets agree but where a silhouette or contact crosses a pixel centre within float32 noise
-            assert len(same) >= 0.95 * max(len(c.pixel), len(g["pixel"])), (s, v, c.name)
+            # pixel sets agree but where a silhouette or a contact crosses a pixel centre within float32
+            # noise: a couple of pixels, or 5 % of a large object
+            differ = max(len(c.pixel), len(g["pixel"])) - len(same)
+            assert differ <= max(2, 0.05 * len(c.pixel)), (s, v, c.name, differ)
             ia = np.searchsorted(g["pixel"].numpy(), same)
             ib = np.searchsorted(c.pixel.numpy(), same)
             assert torch.allclose(g["depth"][ia].float(), c.depth[ib], atol=1e-4)
