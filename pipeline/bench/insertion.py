@@ -45,15 +45,24 @@ SPP = (1, 2, 4, 8, 16, 32, 64)
 
 
 def _test_cases(root: Path) -> list[tuple[str, str]]:
-    return [
-        (s, v) for s in iv.read_split(root, "test") for v in iv.list_views(root, s) if case_io.has_cases(root, s, v)
-    ]
+    views = [(s, v) for s in iv.read_split(root, "test") for v in iv.list_views(root, s)]
+    views = [sv for sv in views if case_io.has_cases(root, *sv)]
+    if not views:
+        raise iv.DatasetError(f"{root}: no test view with insertion cases (run `dvc repro synthesize`)")
+    return views
+
+
+def _maps(root: Path, scene: str, view: str) -> dict:
+    check = iv.read_view(root, scene, view)
+    if check.maps is None:
+        raise iv.DatasetError(f"{root}/{scene}/{view}: {check.rejections('test')}")
+    return check.maps
 
 
 def speed(root, material, light, resolutions, spps, repeats: int) -> list[dict]:
     """Seconds per insertion of a mirror sphere at the centre of the first test photo."""
     scene, view = _test_cases(root)[0]
-    im = iv.read_view(root, scene, view).maps["im"]
+    im = _maps(root, scene, view)["im"]
     fov = float(iv.read_cameras(root, scene)[view]["fov_x_deg"])
     rows = []
     for H, W in resolutions:
@@ -87,7 +96,7 @@ def accuracy(root, material, light, spps) -> dict:
     per_spp = {s: {"psnr": [], "log_l1": [], "seconds": 0.0} for s in spps}
     views = _test_cases(root)
     for scene, view in tqdm(views, desc="insertion accuracy", unit="view"):
-        maps = iv.read_view(root, scene, view).maps
+        maps = _maps(root, scene, view)
         H, W = maps["im"].shape[:2]
         objects = [c for c in case_io.read_cases(root, scene, view, H, W) if c.kind == "object"]
         fov = float(iv.read_cameras(root, scene)[view]["fov_x_deg"])
