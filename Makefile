@@ -13,9 +13,9 @@ export MLFLOW_SERVER_ENABLE_JOB_EXECUTION := false
 export DRJIT_LIBLLVM_PATH := $(LLVM_LIB)
 export PATH := $(CURDIR)/$(VENV)/bin:$(PATH)
 
-.PHONY: setup llvm repro test test-fast lint ui clean-outputs
+.PHONY: setup llvm chromium repro test test-fast lint ui clean-outputs
 
-setup: $(STAMP) llvm
+setup: $(STAMP) llvm chromium
 
 # Reinstalls only when the lock file or the project metadata change.
 $(STAMP): requirements.lock pyproject.toml
@@ -31,6 +31,15 @@ llvm:
 	    { apt-get update -qq && DEBIAN_FRONTEND=noninteractive apt-get install -y -qq libllvm19 >/dev/null; } \
 	      || echo "warning: could not install libllvm19; Mitsuba will fall back to scalar_rgb (2.4x slower)"; \
 	  else echo "note: libLLVM 19 missing and not root; Mitsuba will fall back to scalar_rgb"; fi; \
+	fi
+
+# Debian's chromium opens the MLflow UI headless in tests/test_ui.py (skipped, saying why, without it).
+chromium:
+	@if ! command -v chromium >/dev/null && ! command -v chromium-browser >/dev/null; then \
+	  if [ "$$(id -u)" = 0 ] && command -v apt-get >/dev/null; then \
+	    { apt-get update -qq && DEBIAN_FRONTEND=noninteractive apt-get install -y -qq chromium >/dev/null; } \
+	      || echo "warning: could not install chromium; the MLflow UI browser test will be skipped"; \
+	  else echo "note: chromium missing and not root; the MLflow UI browser test will be skipped"; fi; \
 	fi
 
 repro: setup
