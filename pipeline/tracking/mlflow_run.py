@@ -32,9 +32,11 @@ def project_root(start: str | Path | None = None) -> Path:
     return here
 
 
-def tracking_uri(uri: str | None = None) -> tuple[str, str]:
+def tracking_uri(uri: str | None = None) -> tuple[str, str | None]:
     """(tracking URI, artifact location). Precedence: explicit `uri`, $MLFLOW_TRACKING_URI, project sqlite.
-    A relative sqlite path is made absolute against the project root."""
+    A relative sqlite path is made absolute against the project root. A tracking server (http/https)
+    keeps the artifacts where it serves them (location None: its own artifact store), not on this
+    client's disk."""
     root = project_root()
     uri = uri or os.environ.get("MLFLOW_TRACKING_URI") or f"sqlite:///{root / 'mlflow.db'}"
     if uri.startswith("sqlite:///") and not uri.startswith("sqlite:////"):
@@ -43,6 +45,8 @@ def tracking_uri(uri: str | None = None) -> tuple[str, str]:
         raise ValueError(
             f"tracking.uri={uri!r}: MLflow 3 needs a database or server URI (e.g. sqlite:////abs/mlflow.db)"
         )
+    if uri.startswith(("http:", "https:")):
+        return uri, None
     db_dir = Path(uri.removeprefix("sqlite:///")).parent if uri.startswith("sqlite:") else root
     return uri, (db_dir / "mlartifacts").as_uri()
 
