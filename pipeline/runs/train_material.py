@@ -47,6 +47,13 @@ def _resume_path(cfg: DictConfig, ckpt_dir: Path) -> str | None:
     path = ckpt_dir / "last.ckpt" if resume == "last" else Path(resume)
     if not path.is_file():
         raise FileNotFoundError(f"resume={resume}: no checkpoint at {path}")
+    try:  # refuse anything but tensors and plain data before Lightning sees it (a pickle can run code)
+        torch.load(path, map_location="cpu", weights_only=True)
+    except Exception as exc:  # unpickling, zip and truncation errors differ by cause; all are refusals
+        first = (str(exc).strip().splitlines() or [""])[0]
+        raise ValueError(
+            f"resume={resume}: {path} is not a weights-only checkpoint ({type(exc).__name__}: {first})"
+        ) from exc
     return str(path)
 
 
@@ -99,7 +106,7 @@ def run(cfg: DictConfig) -> dict[str, float]:
         )
         ckpt = ModelCheckpoint(dirpath=ckpt_dir, filename="best", monitor="val/loss", mode="min", save_last=True)
         trainer = stage_trainer(run, OmegaConf.to_container(cfg.trainer, resolve=True), out, [ckpt], bool(cfg.progress))
-        trainer.fit(system, datamodule=dm, ckpt_path=resume)
+        trainer.fit(system, datamodule=dm, ckpt_path=resume, weights_only=True)
         best = ckpt.best_model_path or ckpt.last_model_path
         state = torch.load(best, map_location="cpu", weights_only=True)["state_dict"]
         system.load_state_dict(state)

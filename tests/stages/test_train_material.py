@@ -2,7 +2,9 @@
 resumes, reports baselines and a gate, and `invrender predict` round-trips a view."""
 
 import json
+import pickle
 import shutil
+from pathlib import Path
 
 import mlflow
 import numpy as np
@@ -103,6 +105,19 @@ def test_resume_from_last_continues_the_step_count(trained, micro_shards, tmp_pa
     assert metrics["global_step"] == 2 and metrics["epochs"] == 2
     with pytest.raises(FileNotFoundError, match="resume=last"):
         train_material.run(_cfg(micro_shards, tmp_path / "fresh", "resume=last"))
+    # a checkpoint whose unpickling would run code is refused before Lightning loads it, and runs nothing
+    marker = tmp_path / "pwned"
+
+    class Payload:
+        def __reduce__(self):
+            return (Path.touch, (marker,))
+
+    evil = tmp_path / "evil" / "outputs" / "train_material" / "checkpoints" / "last.ckpt"
+    evil.parent.mkdir(parents=True)
+    evil.write_bytes(pickle.dumps({"state_dict": {}, "x": Payload()}))
+    with pytest.raises(ValueError, match="not a weights-only checkpoint"):
+        train_material.run(_cfg(micro_shards, tmp_path / "evil", "resume=last"))
+    assert not marker.exists()
 
 
 def test_predict_round_trips_a_view(trained, micro_root, tmp_path):
