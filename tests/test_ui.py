@@ -50,7 +50,9 @@ def test_mlflow_ui_shows_a_stage_run_its_metric_and_its_figure(tmp_path):
 
     uri = os.environ["MLFLOW_TRACKING_URI"]  # the session's sqlite store (tests/conftest.py)
     mlflow.set_tracking_uri(uri)
-    mlflow.set_experiment("ui-check")
+    # an experiment of its own with its artifacts in tmp_path (the default would be ./mlruns in the checkout)
+    exp = mlflow.create_experiment(f"ui-check-{tmp_path.name}", artifact_location=(tmp_path / "artifacts").as_uri())
+    mlflow.set_experiment(experiment_id=exp)
     fig = tmp_path / "insertion_ui_check.png"
     plt.plot([0, 1], [0, 1])
     plt.savefig(fig)
