@@ -268,7 +268,7 @@ def edit_material(
     import torch
     from PIL import Image, UnidentifiedImageError
 
-    from pipeline.models.insertion import composite_gbuffer, composite_image, light_net_radiance, render_case
+    from pipeline.models.insertion import composite_image, edited_gbuffer, light_net_radiance, render_case
     from pipeline.models.render_layer import MCRenderLayer
 
     png, exr = _output_paths(out)
@@ -297,15 +297,7 @@ def edit_material(
     pixels = torch.from_numpy(np.flatnonzero(m.reshape(-1) > 0.5))
     if not len(pixels):
         raise EditError(f"--mask {mask}: selects no pixel (white = edit)")
-    alb = gb["albedo"][0].reshape(3, -1)[:, pixels].T.clone()
-    mat = gb["material"][0].reshape(2, -1)[:, pixels].T.clone()
-    if rgb_albedo is not None:
-        alb[:] = torch.tensor(rgb_albedo)
-    if roughness is not None:
-        mat[:, 0] = roughness
-    if metallic is not None:
-        mat[:, 1] = metallic
-    shading = composite_gbuffer(gb, pixels, albedo=alb, material=mat)
+    shading = edited_gbuffer(gb, pixels, rgb_albedo, roughness, metallic)
     with torch.no_grad():
         rgb = render_case(
             MCRenderLayer(spp=spp), shading, fov, pixels, light_net_radiance(net, ctx, gb, fov, seed), seed

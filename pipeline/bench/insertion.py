@@ -30,6 +30,7 @@ from pipeline.data import interiorverse as iv  # noqa: E402
 from pipeline.metrics.insertion import case_scores  # noqa: E402
 from pipeline.models.insertion import (  # noqa: E402
     composite_gbuffer,
+    gbuffers_from_maps,
     insert_into,
     light_net_radiance,
     prepare_scene,
@@ -39,7 +40,6 @@ from pipeline.models.light_net import load_light_export  # noqa: E402
 from pipeline.models.light_net.branches import image_scale  # noqa: E402
 from pipeline.models.material_net import load_material_export, predict_maps  # noqa: E402
 from pipeline.models.render_layer import MCRenderLayer  # noqa: E402
-from pipeline.runs.edit import view_gbuffers  # noqa: E402
 
 SPP = (1, 2, 4, 8, 16, 32, 64)
 
@@ -101,7 +101,7 @@ def accuracy(root, material, light, spps) -> dict:
         objects = [c for c in case_io.read_cases(root, scene, view, H, W) if c.kind == "object"]
         fov = float(iv.read_cameras(root, scene)[view]["fov_x_deg"])
         im = torch.from_numpy(np.ascontiguousarray(maps["im"])).float().permute(2, 0, 1)[None]
-        _, pred = view_gbuffers(maps, predict_maps(net, meta, maps["im"]))
+        pred = gbuffers_from_maps(predict_maps(net, meta, maps["im"]), maps["mask"][..., 0] > 0.5)
         with torch.no_grad():
             ctx = light.encode(im, pred["depth"], fov)
         scale = float(image_scale(im)[0])

@@ -116,21 +116,49 @@ def composite_image(photo: torch.Tensor, pixels: torch.Tensor, values: torch.Ten
     return flat.reshape(photo.shape)
 
 
+def _chw(a: np.ndarray) -> torch.Tensor:
+    """(H, W, C) array -> (1, C, H, W) float32 tensor."""
+    return torch.from_numpy(np.ascontiguousarray(a)).float().permute(2, 0, 1)[None]
+
+
+def gbuffers_from_maps(maps: dict, mask: np.ndarray | None = None) -> dict:
+    """InteriorVerse-convention maps of one view (depth (H, W) or (H, W, 1) z-depth in millimetres, inf
+    where invalid; normal, albedo (H, W, 3); material (H, W, >=2) roughness, metallic) -> the render
+    layer's G-buffers: depth (1, H, W) metres, 0 where not finite or outside the boolean `mask` (H, W),
+    normal/albedo (1, 3, H, W), material (1, 2, H, W)."""
+    depth_mm = np.nan_to_num(np.asarray(maps["depth"], np.float64), posinf=0.0)
+    depth = torch.from_numpy(depth_mm / 1000.0).float().reshape(maps["normal"].shape[:2])
+    if mask is not None:
+        depth = torch.where(torch.from_numpy(np.asarray(mask, bool)), depth, torch.zeros_like(depth))
+    return {
+        "depth": depth[None],
+        "normal": _chw(maps["normal"]),
+        "albedo": _chw(maps["albedo"]),
+        "material": _chw(maps["material"][..., :2]),
+    }
+
+
+def edited_gbuffer(
+    gbuffer: dict, pixels: torch.Tensor, albedo=None, roughness: float | None = None, metallic: float | None = None
+) -> dict:
+    """The G-buffers with a material edit at `pixels` (M,): albedo (3,) linear base colour, roughness and
+    metallic where given; the G-buffers' own values for what is None."""
+    alb = gbuffer["albedo"][0].reshape(3, -1)[:, pixels].T.clone()
+    mat = gbuffer["material"][0].reshape(2, -1)[:, pixels].T.clone()
+    if albedo is not None:
+        alb[:] = torch.as_tensor(albedo, dtype=alb.dtype)
+    if roughness is not None:
+        mat[:, 0] = float(roughness)
+    if metallic is not None:
+        mat[:, 1] = float(metallic)
+    return composite_gbuffer(gbuffer, pixels, albedo=alb, material=mat)
+
+
 def prepare_scene(im, material_net, meta: dict, light_net, fov: float):
     """A linear photo (H, W, 3) -> (photo (H, W, 3), image (1, 3, H, W), predicted G-buffers, LightNet,
     its context), what `insert_into` and `invrender edit` work on."""
-    maps = predict_maps(material_net, meta, im)
-
-    def chw(a):
-        return torch.from_numpy(np.ascontiguousarray(a)).float().permute(2, 0, 1)[None]
-
-    gb = {
-        "depth": torch.from_numpy(maps["depth"] / 1000.0).float()[None],
-        "normal": chw(maps["normal"]),
-        "albedo": chw(maps["albedo"]),
-        "material": chw(maps["material"][..., :2]),
-    }
-    image = chw(im)
+    gb = gbuffers_from_maps(predict_maps(material_net, meta, im))
+    image = _chw(im)
     with torch.no_grad():
         ctx = light_net.eval().encode(image, gb["depth"], fov)
     return torch.from_numpy(im), image, gb, light_net, ctx

@@ -51,7 +51,14 @@ from pipeline.data.synth.cases import InsertedObject, MaterialEdit
 from pipeline.data.synth.oracle import MitsubaOracle
 from pipeline.data.synth.scene import Room
 from pipeline.metrics.insertion import HIGHER_IS_BETTER, SCORES, case_scores, noise_floor_psnr, paired_bootstrap
-from pipeline.models.insertion import composite_gbuffer, composite_image, light_net_radiance, render_case
+from pipeline.models.insertion import (
+    composite_gbuffer,
+    composite_image,
+    edited_gbuffer,
+    gbuffers_from_maps,
+    light_net_radiance,
+    render_case,
+)
 from pipeline.models.light_net import load_light_export
 from pipeline.models.light_net.branches import image_scale
 from pipeline.models.material_net import load_material_export, predict_maps
@@ -64,37 +71,6 @@ from pipeline.tracking.figures import insertion_grid
 
 ROWS = ("lightnet", "lightnet_gt_gbuffers", "constant", "scaled_constant", "nearest_probe", "oracle")
 FIGURE_ROWS = ("lightnet", "lightnet_gt_gbuffers", "scaled_constant", "nearest_probe", "oracle")
-
-
-def view_gbuffers(maps: dict, pred: dict) -> tuple[dict, dict]:
-    """(ground truth, prediction) G-buffers of one view as the render layer takes them (depth in metres, 0
-    outside the ground-truth mask, as `train_lighting` feeds LightNet)."""
-    mask = torch.from_numpy(maps["mask"][..., 0] > 0.5)
-
-    def gb(src) -> dict:
-        depth = torch.from_numpy(np.nan_to_num(src["depth"], posinf=0.0) / 1000.0).float().reshape(mask.shape)
-        return {
-            "depth": torch.where(mask, depth, torch.zeros_like(depth))[None],
-            "normal": torch.from_numpy(np.ascontiguousarray(src["normal"])).float().permute(2, 0, 1)[None],
-            "albedo": torch.from_numpy(np.ascontiguousarray(src["albedo"])).float().permute(2, 0, 1)[None],
-            "material": torch.from_numpy(np.ascontiguousarray(src["material"][..., :2])).float().permute(2, 0, 1)[None],
-        }
-
-    return gb(maps), gb(pred)
-
-
-def edit_values(edit: dict, base: dict, pixels: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-    """(albedo (M, 3), material (M, 2)) of the edited region: the edit's fields where it sets them, the
-    G-buffers `base` (predicted) elsewhere."""
-    albedo = base["albedo"][0].reshape(3, -1)[:, pixels].T.clone()
-    material = base["material"][0].reshape(2, -1)[:, pixels].T.clone()
-    if edit.get("albedo") is not None:
-        albedo[:] = torch.tensor(edit["albedo"], dtype=albedo.dtype)
-    if edit.get("roughness") is not None:
-        material[:, 0] = float(edit["roughness"])
-    if edit.get("metallic") is not None:
-        material[:, 1] = float(edit["metallic"])
-    return albedo, material
 
 
 def case_centre(case: case_io.Case, gt: dict, fov: float, w2v: np.ndarray) -> torch.Tensor:
@@ -126,8 +102,8 @@ def score_view(ctx: dict, cases: list[case_io.Case], cfg: DictConfig) -> list[di
             shade_gt = composite_gbuffer(gt, case.pixel, **obj)
             oracle = ctx["oracle"].for_object(InsertedObject(**case.description))
         else:
-            albedo, material = edit_values(case.description, pred, case.pixel)
-            shade_pred = composite_gbuffer(pred, case.pixel, albedo=albedo, material=material)
+            d = case.description
+            shade_pred = edited_gbuffer(pred, case.pixel, d["albedo"], d["roughness"], d["metallic"])
             shade_gt = composite_gbuffer(gt, case.pixel, albedo=case.albedo, material=case.material)
             oracle = ctx["oracle"].for_edit(MaterialEdit(**case.description))
         centre = case_centre(case, gt, fov, ctx["w2v"])
@@ -267,7 +243,10 @@ def view_context(shared: dict, scene: str, view: str, cfg: DictConfig) -> tuple[
     room = Room.from_json(json.loads((root / scene / "scene.json").read_text()))
     fov = float(camera["fov_x_deg"])
     im = torch.from_numpy(np.ascontiguousarray(maps["im"])).float().permute(2, 0, 1)[None]
-    gt, pred = view_gbuffers(maps, predict_maps(*shared["material"], maps["im"]))
+    # predicted depth is zeroed outside the view's valid mask too, as `train_lighting` feeds LightNet
+    mask = maps["mask"][..., 0] > 0.5
+    gt = gbuffers_from_maps(maps, mask)
+    pred = gbuffers_from_maps(predict_maps(*shared["material"], maps["im"]), mask)
     net, view_id = shared["net"], f"{scene}/{view}"
     seed = view_seed(int(cfg.render.seed), view_id)
     with torch.no_grad():

@@ -72,9 +72,8 @@ def test_oracle_render_matches_mitsuba_within_its_noise(micro_root, mitsuba_vari
     from pipeline.data.synth.cases import InsertedObject, room_with_object
     from pipeline.data.synth.oracle import MitsubaOracle
     from pipeline.data.synth.scene import Room
-    from pipeline.models.insertion import composite_gbuffer, render_case
+    from pipeline.models.insertion import composite_gbuffer, gbuffers_from_maps, render_case
     from pipeline.models.render_layer import MCRenderLayer
-    from pipeline.runs.edit import view_gbuffers
 
     found = None
     for split in ("val", "test"):
@@ -90,7 +89,7 @@ def test_oracle_render_matches_mitsuba_within_its_noise(micro_root, mitsuba_vari
     room = Room.from_json(json.loads((Path(micro_root) / scene / "scene.json").read_text()))
     camera = room.cameras[int(view)]
     obj = InsertedObject(**case.description)
-    gt, _ = view_gbuffers(maps, maps)
+    gt = gbuffers_from_maps(maps, maps["mask"][..., 0] > 0.5)
     shading = composite_gbuffer(
         gt, case.pixel, albedo=case.albedo, material=case.material, normal=case.normal, depth=case.depth
     )
