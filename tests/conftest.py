@@ -16,6 +16,29 @@ CONF = ROOT / "conf"
 LLVM = "/usr/lib/x86_64-linux-gnu/libLLVM.so.19.1"
 
 
+def free_port() -> int:
+    """A TCP port on 127.0.0.1 nothing listens on now (for servers a test starts)."""
+    import socket
+
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def wait_for_http(url: str, seconds: float, what: str) -> None:
+    """Poll `url` every 0.5 s until it answers; fail the test naming `what` after `seconds`."""
+    import time
+    import urllib.request
+
+    for _ in range(int(seconds * 2)):
+        try:
+            urllib.request.urlopen(url, timeout=1)
+            return
+        except OSError:
+            time.sleep(0.5)
+    pytest.fail(f"{what} did not answer within {seconds:.0f} s")
+
+
 def compose_cfg(name: str, overrides: list[str] | None = None):
     """Compose `conf/<name>.yaml` with overrides (Hydra Compose API, no working-dir change)."""
     with initialize_config_dir(config_dir=str(CONF), version_base="1.3"):

@@ -5,14 +5,13 @@ from __future__ import annotations
 
 import os
 import shutil
-import socket
 import subprocess
 import sys
-import time
-import urllib.request
 from pathlib import Path
 
 import pytest
+
+from tests.conftest import free_port, wait_for_http
 
 CHROMIUM = shutil.which("chromium") or shutil.which("chromium-browser")
 pytestmark = [
@@ -21,12 +20,6 @@ pytestmark = [
         CHROMIUM is None, reason="Debian's chromium is not installed (`make setup` installs it as root)"
     ),
 ]
-
-
-def _free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
 
 
 def _dom(url: str) -> str:
@@ -61,7 +54,7 @@ def test_mlflow_ui_shows_a_stage_run_its_metric_and_its_figure(tmp_path):
         publish(tmp_path / "report", {"insert/all/lightnet/psnr": 17.25})
         mlflow.log_artifact(str(fig), "figures")
     exp_id, run_id = run.info.experiment_id, run.info.run_id
-    port = _free_port()
+    port = free_port()
     env = {**os.environ, "MLFLOW_SERVER_ENABLE_JOB_EXECUTION": "false"}
     server = subprocess.Popen(
         [sys.executable, "-m", "mlflow", "ui", "--backend-store-uri", uri, "--host", "127.0.0.1", "--port", str(port)]
@@ -72,14 +65,7 @@ def test_mlflow_ui_shows_a_stage_run_its_metric_and_its_figure(tmp_path):
     )
     try:
         base = f"http://127.0.0.1:{port}"
-        for _ in range(120):
-            try:
-                urllib.request.urlopen(base, timeout=1)
-                break
-            except OSError:
-                time.sleep(0.5)
-        else:
-            pytest.fail("mlflow ui did not answer within 60 s")
+        wait_for_http(base, 60, "mlflow ui")
         overview = _dom(f"{base}/#/experiments/{exp_id}/runs/{run_id}")
         assert "edit-uicheck" in overview
         assert "insert.all.lightnet.psnr" in overview and "17.25" in overview

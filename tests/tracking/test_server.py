@@ -5,23 +5,14 @@ beside the client."""
 from __future__ import annotations
 
 import os
-import socket
 import subprocess
 import sys
-import time
-import urllib.request
 
 import pytest
 
-from tests.conftest import compose_cfg
+from tests.conftest import compose_cfg, free_port, wait_for_http
 
 pytestmark = pytest.mark.slow
-
-
-def _free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
 
 
 def test_a_stage_runs_against_a_tracking_server(micro_root, tmp_path):
@@ -30,7 +21,7 @@ def test_a_stage_runs_against_a_tracking_server(micro_root, tmp_path):
     from pipeline.runs.preprocess import run
 
     session_uri = os.environ["MLFLOW_TRACKING_URI"]  # set_tracking_uri also rewrites the variable
-    port = _free_port()
+    port = free_port()
     server_dir = tmp_path / "server"
     server_dir.mkdir()
     env = {**os.environ, "MLFLOW_SERVER_ENABLE_JOB_EXECUTION": "false"}
@@ -46,14 +37,7 @@ def test_a_stage_runs_against_a_tracking_server(micro_root, tmp_path):
     )
     uri = f"http://127.0.0.1:{port}"
     try:
-        for _ in range(240):
-            try:
-                urllib.request.urlopen(f"{uri}/health", timeout=1)
-                break
-            except OSError:
-                time.sleep(0.5)
-        else:
-            pytest.fail("mlflow server did not answer within 120 s")
+        wait_for_http(f"{uri}/health", 120, "mlflow server")
         cfg = compose_cfg(
             "preprocess",
             [
