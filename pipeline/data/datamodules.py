@@ -13,7 +13,11 @@ from pipeline.data.datasets import ShardDataset, augment_views, collate_views
 
 class InteriorVerseDataModule(L.LightningDataModule):
     """Loads `<root>/manifest.json` shards; the train loader shuffles with a seeded generator and, with
-    `augment`, mirrors views and permutes their colour channels at random (seeded, see `augment_views`)."""
+    `augment`, mirrors views and permutes their colour channels at random (seeded, see `augment_views`).
+
+    The two generators live as long as the module and their states travel in Lightning checkpoints
+    (`state_dict`), so a run resumed from an epoch-end checkpoint draws the same order and the same
+    augmentations for its next epoch as the uninterrupted run does."""
 
     def __init__(
         self,
@@ -35,6 +39,18 @@ class InteriorVerseDataModule(L.LightningDataModule):
         if not 0.0 < self.min_scale <= 1.0:
             raise ValueError(f"min_scale={min_scale}: must be in (0, 1] (1 = no crop augmentation)")
         self.splits: dict[str, ShardDataset] = {}
+        self.shuffle_generator = torch.Generator().manual_seed(self.seed)
+        self.augment_generator = torch.Generator().manual_seed(self.seed + 1)
+
+    def state_dict(self) -> dict:
+        return {
+            "shuffle_generator": self.shuffle_generator.get_state(),
+            "augment_generator": self.augment_generator.get_state(),
+        }
+
+    def load_state_dict(self, state: dict) -> None:
+        self.shuffle_generator.set_state(state["shuffle_generator"])
+        self.augment_generator.set_state(state["augment_generator"])
 
     def setup(self, stage: str | None = None) -> None:
         wanted = {"fit": ("train", "val"), "validate": ("val",), "test": ("test",), "predict": ("test",)}
@@ -47,10 +63,10 @@ class InteriorVerseDataModule(L.LightningDataModule):
             self.setup({"train": "fit", "val": "validate", "test": "test"}[split])
         if len(self.splits[split]) == 0:
             raise ValueError(f"{self.root}: split {split!r} has no views")
-        gen = torch.Generator().manual_seed(self.seed) if shuffle else None
+        gen = self.shuffle_generator if shuffle else None
         collate = collate_views
         if augment:
-            aug_gen = torch.Generator().manual_seed(self.seed + 1)
+            aug_gen = self.augment_generator
 
             def collate(items):
                 return augment_views(collate_views(items), aug_gen, self.permute, self.min_scale)

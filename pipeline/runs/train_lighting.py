@@ -20,7 +20,7 @@ from pipeline.models.material_net import load_material_export
 from pipeline.systems.lighting import LightingSystem
 from pipeline.systems.lighting_baselines import mean_training_radiance
 from pipeline.systems.lighting_figures import lighting_figures
-from pipeline.systems.trainer import stage_trainer
+from pipeline.systems.trainer import resume_checkpoint, stage_trainer
 from pipeline.tracking import publish, stage_run
 
 
@@ -62,14 +62,16 @@ def run(cfg: DictConfig) -> dict[str, float]:
     source = read_manifest(cfg.data_dir).get("source", "unspecified")
     mode = str(cfg.model.light_net.mode)
     tags = {"data_source": source, "mode": mode, "render": str(cfg.render.estimator)}
-    with stage_run("train_lighting", cfg, tags=tags) as run:
+    resume, resume_run_id = resume_checkpoint(cfg.resume, out / "checkpoints")
+    with stage_run("train_lighting", cfg, tags=tags, resume_run_id=resume_run_id) as run:
         ckpt = ModelCheckpoint(
             dirpath=out / "checkpoints", filename="best", monitor="val/render_psnr", mode="max", save_last=True
         )
         trainer = stage_trainer(run, OmegaConf.to_container(cfg.trainer, resolve=True), out, [ckpt], bool(cfg.progress))
-        # the first validation pass (before any training step) records the starting re-render PSNR
+        # the first validation pass (before any training step) records the starting re-render PSNR; a
+        # resumed run repeats it on the same seeded initialisation, so it reports the same number
         start = trainer.validate(system, datamodule=dm, verbose=False)[0]
-        trainer.fit(system, datamodule=dm)
+        trainer.fit(system, datamodule=dm, ckpt_path=resume, weights_only=True)
         if system.validated_at_step == trainer.global_step:  # the last epoch was validated: same weights
             last = float(trainer.callback_metrics["val/render_psnr"])
         else:
@@ -84,6 +86,8 @@ def run(cfg: DictConfig) -> dict[str, float]:
         mlflow.set_tag("test_weights", chosen)
         system.baselines = constants
         trainer.test(system, datamodule=dm, verbose=False)
+        if run is None:  # a distributed process other than rank 0: rank 0 reports, exports and tracks
+            return {}
         logged = {
             k.removeprefix("test/"): float(v) for k, v in trainer.callback_metrics.items() if k.startswith("test/")
         }

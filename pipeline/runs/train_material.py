@@ -19,7 +19,7 @@ from pipeline.models.export import save_material_export
 from pipeline.models.material_net import parameter_count
 from pipeline.systems.material import METRICS, MaterialSystem
 from pipeline.systems.material_baselines import MaterialBaselines, accuracy_gate
-from pipeline.systems.trainer import stage_trainer
+from pipeline.systems.trainer import resume_checkpoint, stage_trainer
 from pipeline.tracking import publish, stage_run
 from pipeline.tracking.figures import map_comparison
 
@@ -38,23 +38,6 @@ def median_depth_scale(system: MaterialSystem, loader) -> float:
     if not scales:
         raise ValueError("validation split has no valid depth pixels; cannot calibrate the depth scale")
     return float(torch.tensor(scales).median())
-
-
-def _resume_path(cfg: DictConfig, ckpt_dir: Path) -> str | None:
-    resume = cfg.resume
-    if resume in (None, "", "none"):
-        return None
-    path = ckpt_dir / "last.ckpt" if resume == "last" else Path(resume)
-    if not path.is_file():
-        raise FileNotFoundError(f"resume={resume}: no checkpoint at {path}")
-    try:  # refuse anything but tensors and plain data before Lightning sees it (a pickle can run code)
-        torch.load(path, map_location="cpu", weights_only=True)
-    except Exception as exc:  # unpickling, zip and truncation errors differ by cause; all are refusals
-        first = (str(exc).strip().splitlines() or [""])[0]
-        raise ValueError(
-            f"resume={resume}: {path} is not a weights-only checkpoint ({type(exc).__name__}: {first})"
-        ) from exc
-    return str(path)
 
 
 def build_system(cfg: DictConfig) -> MaterialSystem:
@@ -90,20 +73,19 @@ def run(cfg: DictConfig) -> dict[str, float]:
     L.seed_everything(int(cfg.seed), workers=True, verbose=False)
     out, report = Path(cfg.out_dir), Path(cfg.report_dir)
     ckpt_dir = out / "checkpoints"
-    resume = _resume_path(cfg, ckpt_dir)
+    resume, resume_run_id = resume_checkpoint(cfg.resume, ckpt_dir)
     source = read_manifest(cfg.data_dir).get("source", "unspecified")
     dm = build_datamodule(cfg)
     dm.setup("fit")
     dm.setup("test")
     baselines = MaterialBaselines.fit(dm.plain_loader("train"))
     system = build_system(cfg)
-    with stage_run("train_material", cfg, tags={"data_source": source}, system_metrics=bool(cfg.system_metrics)) as run:
-        mlflow.log_params(
-            {
-                "loss.perceptual_on": system.loss.perceptual_on,
-                "model.parameters": parameter_count(system.net),
-            }
-        )
+    tags = {"data_source": source}
+    with stage_run("train_material", cfg, tags, bool(cfg.system_metrics), resume_run_id) as run:
+        if run is not None and resume_run_id != run.info.run_id:  # a continued run has them already
+            mlflow.log_params(
+                {"loss.perceptual_on": system.loss.perceptual_on, "model.parameters": parameter_count(system.net)}
+            )
         ckpt = ModelCheckpoint(dirpath=ckpt_dir, filename="best", monitor="val/loss", mode="min", save_last=True)
         trainer = stage_trainer(run, OmegaConf.to_container(cfg.trainer, resolve=True), out, [ckpt], bool(cfg.progress))
         trainer.fit(system, datamodule=dm, ckpt_path=resume, weights_only=True)
@@ -112,6 +94,8 @@ def run(cfg: DictConfig) -> dict[str, float]:
         system.load_state_dict(state)
         system.baselines = baselines
         trainer.test(system, datamodule=dm, verbose=False)
+        if run is None:  # a distributed process other than rank 0: rank 0 reports, exports and tracks
+            return {}
         logged = {k: float(v) for k, v in trainer.callback_metrics.items() if k.startswith("test")}
         model_metrics = {m: logged[f"test/{m}"] for m in METRICS}
         base_metrics = {

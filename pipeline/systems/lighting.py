@@ -221,6 +221,14 @@ class LightingSystem(L.LightningModule):
         for k, v in row.items():
             self.log(f"test/{k}", v, batch_size=batch["im"].shape[0])
 
+    def on_save_checkpoint(self, checkpoint: dict) -> None:
+        # the sampler of pixels, probes and directions: a resumed run continues its draws, not restarts them
+        checkpoint["sampling_generator"] = self.generator.get_state()
+
+    def on_load_checkpoint(self, checkpoint: dict) -> None:
+        if "sampling_generator" in checkpoint:
+            self.generator.set_state(checkpoint["sampling_generator"])
+
     def configure_optimizers(self):
         opt = self.optimizer_fn(self.net.parameters())
         if self.scheduler_fn is None:

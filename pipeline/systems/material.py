@@ -59,9 +59,10 @@ class MaterialSystem(L.LightningModule):
         total, terms = self.loss(pred, batch)
         bs = batch["im"].shape[0]
         on_step = stage == "train"
-        self.log(f"{stage}/loss", total, on_step=on_step, on_epoch=True, prog_bar=True, batch_size=bs)
+        sync = not on_step  # epoch means of validation over every DDP rank (a no-op in one process)
+        self.log(f"{stage}/loss", total, on_step=on_step, on_epoch=True, prog_bar=True, batch_size=bs, sync_dist=sync)
         for k, v in terms.items():
-            self.log(f"{stage}/loss_{k}", v, on_step=on_step, on_epoch=True, batch_size=bs)
+            self.log(f"{stage}/loss_{k}", v, on_step=on_step, on_epoch=True, batch_size=bs, sync_dist=sync)
         return total, pred
 
     def training_step(self, batch, batch_idx):

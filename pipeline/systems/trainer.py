@@ -1,23 +1,84 @@
-"""Lightning Trainer wiring shared by the training stages (systems is the only Lightning-aware layer)."""
+"""Lightning Trainer wiring shared by the training stages (systems is the only Lightning-aware layer):
+the Trainer itself, resuming from a checkpoint, and the MLflow run id carried inside checkpoints."""
 
 from __future__ import annotations
 
+from pathlib import Path
+
+import torch
+
+RUN_ID_KEY = "MLflowRunId"  # the callback's state key inside checkpoint["callbacks"]
+
+
+def resume_checkpoint(resume: str | None, ckpt_dir: str | Path) -> tuple[str | None, str | None]:
+    """(checkpoint path, MLflow run id stored in it) for a stage's `resume` setting: None/''/'none' ->
+    (None, None); 'last' -> `<ckpt_dir>/last.ckpt`; anything else is a path. The file is loaded
+    weights-only first, so a checkpoint whose unpickling would run code is refused before Lightning
+    sees it. Raises FileNotFoundError / ValueError naming the setting and the file."""
+    if resume in (None, "", "none"):
+        return None, None
+    path = Path(ckpt_dir) / "last.ckpt" if resume == "last" else Path(resume)
+    if not path.is_file():
+        raise FileNotFoundError(f"resume={resume}: no checkpoint at {path}")
+    try:
+        ckpt = torch.load(path, map_location="cpu", weights_only=True)
+    except Exception as exc:  # unpickling, zip and truncation errors differ by cause; all are refusals
+        first = (str(exc).strip().splitlines() or [""])[0]
+        raise ValueError(
+            f"resume={resume}: {path} is not a weights-only checkpoint ({type(exc).__name__}: {first})"
+        ) from exc
+    if not isinstance(ckpt, dict) or "state_dict" not in ckpt or "loops" not in ckpt:
+        raise ValueError(f"resume={resume}: {path} is not a Lightning training checkpoint (no state_dict/loops)")
+    run_id = ckpt.get("callbacks", {}).get(RUN_ID_KEY, {}).get("run_id")
+    return str(path), run_id
+
+
+def _run_id_callback(run_id: str):
+    from lightning.pytorch.callbacks import Callback
+
+    class MLflowRunId(Callback):
+        """Writes the stage's MLflow run id into every checkpoint, so `resume` continues that run."""
+
+        @property
+        def state_key(self) -> str:
+            return RUN_ID_KEY
+
+        def state_dict(self) -> dict:
+            return {"run_id": run_id}
+
+        def load_state_dict(self, state_dict: dict) -> None:
+            pass  # the run to continue was chosen before the Trainer existed (resume_checkpoint)
+
+    return MLflowRunId()
+
 
 def stage_trainer(run, trainer_kwargs: dict, out_dir, callbacks=(), progress: bool = True):
-    """A Lightning Trainer logging to the stage's open MLflow run (`run`), writing under `out_dir`."""
+    """A Lightning Trainer logging to the stage's open MLflow run (`run`; None on ranks other than 0,
+    which log nothing), writing under `out_dir`; its checkpoints carry the run id."""
     import lightning as L
     import mlflow
     from lightning.pytorch.loggers import MLFlowLogger
 
-    logger = MLFlowLogger(
-        experiment_name=mlflow.get_experiment(run.info.experiment_id).name,
-        tracking_uri=mlflow.get_tracking_uri(),
-        run_id=run.info.run_id,
-    )
+    class StageRunLogger(MLFlowLogger):
+        """Lightning's MLflow logger, minus ending the run: Lightning ends it after every validate/fit/
+        test call, which marked a stage FINISHED while it still ran (and after a kill). The stage's
+        `stage_run` owns the run's status."""
+
+        def finalize(self, status: str = "success") -> None:
+            pass
+
+    logger, extra = False, []
+    if run is not None:
+        logger = StageRunLogger(
+            experiment_name=mlflow.get_experiment(run.info.experiment_id).name,
+            tracking_uri=mlflow.get_tracking_uri(),
+            run_id=run.info.run_id,
+        )
+        extra = [_run_id_callback(run.info.run_id)]
     return L.Trainer(
         **trainer_kwargs,
         logger=logger,
-        callbacks=list(callbacks),
+        callbacks=[*callbacks, *extra],
         default_root_dir=str(out_dir),
         enable_progress_bar=progress,
         enable_model_summary=False,

@@ -93,32 +93,99 @@ def activate_experiment(cfg: DictConfig) -> None:
     mlflow.set_experiment(name)
 
 
-@contextlib.contextmanager
-def stage_run(
-    stage: str, cfg: DictConfig, tags: dict[str, str] | None = None, system_metrics: bool = False
-) -> Iterator:
-    """Open an MLflow run named `<stage>-<profile>` tagged with stage, profile, git sha and DVC_EXP_NAME;
-    log the resolved config (params + `config/<stage>.yaml` artifact). Nested when a parent run is active
-    (Hydra sweeps). system_metrics samples CPU/memory into the run while it is open. Yields the active
-    `mlflow` run."""
+PARENT_ENV = "INVRENDER_PARENT_RUN_ID"  # a sweep's parent run, for jobs in other processes (joblib, SLURM)
+
+
+def process_rank() -> int:
+    """This process's global rank as the launchers announce it before any process group exists:
+    Lightning's DDP launcher (LOCAL_RANK, NODE_RANK), torchrun (RANK), SLURM (SLURM_PROCID); else 0."""
+    for key in ("RANK", "SLURM_PROCID"):
+        if os.environ.get(key, "").isdigit():
+            return int(os.environ[key])
+    local = os.environ.get("LOCAL_RANK", "")
+    if local.isdigit():
+        per_node = int(os.environ.get("LOCAL_WORLD_SIZE", "0") or 0)
+        return int(os.environ.get("NODE_RANK", "0") or 0) * per_node + int(local)
+    return 0
+
+
+def sweep_overrides() -> list[str]:
+    """The command-line overrides of this Hydra multirun job ([] outside a multirun, or under Compose)."""
+    try:
+        from hydra.core.hydra_config import HydraConfig
+        from hydra.types import RunMode
+
+        hc = HydraConfig.get()
+        return list(hc.overrides.task) if hc.mode == RunMode.MULTIRUN else []
+    except (ImportError, ValueError):
+        return []
+
+
+def _continue_params(run_id: str, params: dict[str, str], stage: str, cfg: DictConfig) -> None:
+    """On a resumed run: log the params it lacks, record the ones that changed (e.g. `resume`,
+    `trainer.max_epochs`) as `resumed.<key>` tags (MLflow params are write-once), and keep this
+    execution's config beside the first one."""
     import mlflow
 
+    logged = mlflow.get_run(run_id).data
+    new = {k: v for k, v in params.items() if k not in logged.params}
+    changed = {f"resumed.{k}": v[:5000] for k, v in params.items() if k in logged.params and logged.params[k] != v}
+    count = int(logged.tags.get("resumed", "0")) + 1
+    if new:
+        mlflow.log_params(new)
+    mlflow.set_tags({**changed, "resumed": str(count)})
+    mlflow.log_text(OmegaConf.to_yaml(cfg, resolve=True), f"config/{stage}.resume-{count}.yaml")
+
+
+@contextlib.contextmanager
+def stage_run(
+    stage: str,
+    cfg: DictConfig,
+    tags: dict[str, str] | None = None,
+    system_metrics: bool = False,
+    resume_run_id: str | None = None,
+) -> Iterator:
+    """Open an MLflow run named `<stage>-<profile>` (plus the job's overrides in a Hydra multirun)
+    tagged with stage, profile, git sha, DVC_EXP_NAME and overrides; log the resolved config (params +
+    `config/<stage>.yaml` artifact). Nested when a parent run is active in this process or named by
+    $INVRENDER_PARENT_RUN_ID (sweep jobs in worker processes). `resume_run_id` (from a checkpoint)
+    continues that run when the store has it, else a new run is linked to it by a tag.
+    system_metrics samples CPU/memory into the run while it is open. Yields the active `mlflow` run,
+    or None on a distributed process other than rank 0 (only rank 0 tracks)."""
+    import mlflow
+
+    if process_rank() != 0:
+        yield None
+        return
     activate_experiment(cfg)
     profile = str(OmegaConf.select(cfg, "profile_name") or "unknown")
+    overrides = sweep_overrides()
     all_tags = {
         "stage": stage,
         "profile": profile,
         "git_sha": git_sha(project_root()),
         "dvc_exp_name": os.environ.get("DVC_EXP_NAME", ""),
+        "overrides": " ".join(overrides)[:5000],
         **(tags or {}),
     }
-    resolved = OmegaConf.to_container(cfg, resolve=True)
-    with mlflow.start_run(
-        run_name=f"{stage}-{profile}",
-        nested=mlflow.active_run() is not None,
-        tags=all_tags,
-        log_system_metrics=system_metrics or None,
-    ) as run:
-        mlflow.log_params(_flatten(resolved))
-        mlflow.log_text(OmegaConf.to_yaml(cfg, resolve=True), f"config/{stage}.yaml")
+    params = _flatten(OmegaConf.to_container(cfg, resolve=True))
+    existing = None
+    if resume_run_id:
+        try:
+            existing = mlflow.get_run(resume_run_id)
+        except mlflow.exceptions.MlflowException:
+            all_tags["resumed_from_run_id"] = resume_run_id  # another store: link, do not continue
+    active = mlflow.active_run()
+    parent = os.environ.get(PARENT_ENV) if active is None else None
+    if existing is not None:
+        start = {"run_id": resume_run_id}
+    else:
+        name = f"{stage}-{profile}" + (f" {' '.join(overrides)}" if overrides else "")
+        start = {"run_name": name[:250], "nested": active is not None, "tags": all_tags, "parent_run_id": parent}
+    with mlflow.start_run(**start, log_system_metrics=system_metrics or None) as run:
+        if existing is not None:
+            _continue_params(run.info.run_id, params, stage, cfg)
+        else:
+            mlflow.log_params(params)
+            mlflow.log_text(OmegaConf.to_yaml(cfg, resolve=True), f"config/{stage}.yaml")
         yield run

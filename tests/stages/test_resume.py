@@ -1,0 +1,144 @@
+"""Kill and resume: `train_material` and `train_lighting` killed with SIGKILL in the middle of an epoch
+resume from last.ckpt with `resume=last`, finish with exactly the metrics of an uninterrupted run of the
+same seed, and continue the killed run's MLflow run rather than opening a second one."""
+
+import json
+import os
+import signal
+import subprocess
+import sys
+
+import mlflow
+import pytest
+
+from tests.conftest import ROOT, compose_cfg
+
+pytestmark = [pytest.mark.slow, pytest.mark.xdist_group("resume")]
+
+EPOCHS, KILL_EPOCH = 3, 1  # killed after the first batch of epoch 1: last.ckpt holds the end of epoch 0
+
+# Runs one stage in a fresh process with a callback that SIGKILLs that process mid-epoch: no handler,
+# no atexit, no MLflow end_run; exactly what the OOM killer or a pre-empted node does.
+KILLED_RUN = """
+import json, os, signal, sys
+sys.path.insert(0, {root!r})
+from lightning.pytorch.callbacks import Callback
+from tests.conftest import compose_cfg
+import importlib
+
+stage, overrides, kill_epoch = sys.argv[1], json.loads(sys.argv[2]), int(sys.argv[3])
+module = importlib.import_module(f"pipeline.runs.{{stage}}")
+
+
+class KillMidEpoch(Callback):
+    def on_train_batch_end(self, trainer, pl_module, outputs, batch, batch_idx):
+        if trainer.current_epoch == kill_epoch and batch_idx == 0:
+            os.kill(os.getpid(), signal.SIGKILL)
+
+
+make_trainer = module.stage_trainer
+module.stage_trainer = lambda run, kw, out, callbacks=(), progress=True: make_trainer(
+    run, kw, out, [*callbacks, KillMidEpoch()], progress
+)
+module.run(compose_cfg(stage, overrides))
+raise SystemExit("the stage finished: it was never killed")
+"""
+
+STAGES = {
+    "train_material": ["system_metrics=false"],
+    "train_lighting": ["gbuffers=ground_truth"],
+}
+
+
+def _overrides(stage, shards, tmp, experiment):
+    return [
+        "profile=micro",
+        f"data_dir={shards}",
+        f"paths.outputs={tmp}/outputs",
+        f"paths.reports={tmp}/reports",
+        "progress=false",
+        "batch_size=1",  # two training batches per epoch, so there is a middle to kill in
+        f"trainer.max_epochs={EPOCHS}",
+        f"tracking.experiment={experiment}",
+        *STAGES[stage],
+    ]
+
+
+@pytest.fixture(scope="module")
+def killed(micro_shards, tmp_path_factory):
+    """Both stages killed mid-epoch, in two processes at once: {stage: (out root, overrides, rc)}."""
+    procs = {}
+    for stage in STAGES:
+        tmp = tmp_path_factory.mktemp(f"killed_{stage}")
+        overrides = _overrides(stage, micro_shards, tmp, f"test-resume-{stage}")
+        script = KILLED_RUN.format(root=str(ROOT))
+        procs[stage] = (
+            tmp,
+            overrides,
+            subprocess.Popen(
+                [sys.executable, "-c", script, stage, json.dumps(overrides), str(KILL_EPOCH)],
+                cwd=tmp,
+                env=os.environ.copy(),
+                stdout=subprocess.PIPE,
+                stderr=subprocess.STDOUT,
+                text=True,
+            ),
+        )
+    out = {}
+    for stage, (tmp, overrides, proc) in procs.items():
+        log, _ = proc.communicate(timeout=600)
+        out[stage] = (tmp, overrides, proc.returncode, log)
+    return out
+
+
+@pytest.mark.parametrize("stage", list(STAGES))
+def test_killed_stage_resumes_to_the_uninterrupted_result(killed, micro_shards, tmp_path, stage):
+    import importlib
+
+    module = importlib.import_module(f"pipeline.runs.{stage}")
+    tmp, overrides, rc, log = killed[stage]
+    assert rc == -signal.SIGKILL, f"{stage} was not killed (rc {rc}):\n{log[-3000:]}"
+    experiment = f"test-resume-{stage}"
+    [killed_run] = mlflow.search_runs(experiment_names=[experiment], output_format="list")
+    assert killed_run.info.status == "RUNNING"  # SIGKILL left it open: nobody could end it
+    assert not (tmp / "reports" / stage / "metrics.json").exists()  # no half-finished report
+
+    resumed = module.run(compose_cfg(stage, [*overrides, "resume=last"]))
+    reference = module.run(compose_cfg(stage, [*_overrides(stage, micro_shards, tmp_path, f"test-resume-ref-{stage}")]))
+    # CPU, deterministic algorithms, the same seed, and every source of randomness restored from the
+    # checkpoint (weights, optimiser, shuffling and augmentation generators, the light sampler): bitwise
+    assert resumed == reference
+    assert resumed["global_step"] == reference["global_step"] > 0
+
+    runs = mlflow.search_runs(experiment_names=[experiment], output_format="list")
+    assert [r.info.run_id for r in runs] == [killed_run.info.run_id]  # continued, not a second half-run
+    run = runs[0]
+    assert run.info.status == "FINISHED"
+    assert run.data.tags["resumed"] == "1" and run.data.tags["resumed.resume"] == "last"
+    assert run.data.params["resume"] == "None"  # the first execution's params stay as they were logged
+    key = next(k for k in resumed if k.endswith("test/render_psnr") or k == "test/albedo_mse")
+    assert run.data.metrics[key.replace("/", ".")] == pytest.approx(resumed[key], rel=1e-6)
+    client = mlflow.MlflowClient()
+    steps = {m.step for m in client.get_metric_history(run.info.run_id, "epoch")}
+    assert max(steps) >= reference["global_step"] - 1  # the history runs to the end of training
+
+
+def test_resume_refuses_a_truncated_or_foreign_checkpoint(killed, tmp_path):
+    from pipeline.systems.trainer import resume_checkpoint
+
+    tmp, *_ = killed["train_material"]
+    last = tmp / "outputs" / "train_material" / "checkpoints" / "last.ckpt"
+    cut = tmp_path / "cut.ckpt"
+    cut.write_bytes(last.read_bytes()[: last.stat().st_size // 2])
+    with pytest.raises(ValueError, match="cut.ckpt is not a weights-only checkpoint"):
+        resume_checkpoint(str(cut), tmp_path)
+    import torch
+
+    export = tmp_path / "export.pt"
+    torch.save({"format": "invrender.material_net/1", "state_dict": {}}, export)
+    with pytest.raises(ValueError, match="export.pt is not a Lightning training checkpoint"):
+        resume_checkpoint(str(export), tmp_path)
+    with pytest.raises(FileNotFoundError, match="resume=last: no checkpoint"):
+        resume_checkpoint("last", tmp_path / "none")
+    path, run_id = resume_checkpoint("last", last.parent)
+    assert path == str(last) and run_id  # the checkpoint names the run it belongs to
