@@ -169,9 +169,9 @@ class LightingSystem(L.LightningModule):
         losses["render"] = (((rgb - target) / scale[b, None]) ** 2).mean()
         total = losses.get("light", 0.0) + self.render_weight * losses["render"]
         bs = batch["im"].shape[0]
-        self.log("train/loss", total, prog_bar=True, on_step=True, on_epoch=True, batch_size=bs)
+        self.log("train/loss", total, prog_bar=True, on_step=True, on_epoch=True, batch_size=bs, sync_dist=True)
         for k, v in losses.items():
-            self.log(f"train/loss_{k}", v, on_step=False, on_epoch=True, batch_size=bs)
+            self.log(f"train/loss_{k}", v, on_step=False, on_epoch=True, batch_size=bs, sync_dist=True)
         return total
 
     @torch.no_grad()
@@ -207,7 +207,7 @@ class LightingSystem(L.LightningModule):
 
     def validation_step(self, batch, batch_idx):
         for k, v in self.evaluate_batch(batch).items():
-            self.log(f"val/{k}", v, batch_size=batch["im"].shape[0])
+            self.log(f"val/{k}", v, batch_size=batch["im"].shape[0], sync_dist=True)
 
     def on_validation_epoch_end(self):
         if not self.trainer.sanity_checking:
@@ -219,7 +219,7 @@ class LightingSystem(L.LightningModule):
             row.update(baseline_metrics(batch, self.baselines, self))
         self.eval_rows.append(row)
         for k, v in row.items():
-            self.log(f"test/{k}", v, batch_size=batch["im"].shape[0])
+            self.log(f"test/{k}", v, batch_size=batch["im"].shape[0], sync_dist=True)
 
     def on_save_checkpoint(self, checkpoint: dict) -> None:
         # the sampler of pixels, probes and directions: a resumed run continues its draws, not restarts them

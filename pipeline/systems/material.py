@@ -59,10 +59,10 @@ class MaterialSystem(L.LightningModule):
         total, terms = self.loss(pred, batch)
         bs = batch["im"].shape[0]
         on_step = stage == "train"
-        sync = not on_step  # epoch means of validation over every DDP rank (a no-op in one process)
-        self.log(f"{stage}/loss", total, on_step=on_step, on_epoch=True, prog_bar=True, batch_size=bs, sync_dist=sync)
+        # sync_dist: means over every DDP process (a no-op in one process)
+        self.log(f"{stage}/loss", total, on_step=on_step, on_epoch=True, prog_bar=True, batch_size=bs, sync_dist=True)
         for k, v in terms.items():
-            self.log(f"{stage}/loss_{k}", v, on_step=on_step, on_epoch=True, batch_size=bs, sync_dist=sync)
+            self.log(f"{stage}/loss_{k}", v, on_step=on_step, on_epoch=True, batch_size=bs, sync_dist=True)
         return total, pred
 
     def training_step(self, batch, batch_idx):
@@ -80,7 +80,7 @@ class MaterialSystem(L.LightningModule):
             }
 
     def on_validation_epoch_end(self):
-        self.log_dict({f"val/{k}": m.compute() for k, m in self.val_metrics.items()})
+        self.log_dict({f"val/{k}": m.compute() for k, m in self.val_metrics.items()}, sync_dist=True)
         self.val_metrics.reset()
         if self.figure_every and self._figure_batch is not None and self.current_epoch % self.figure_every == 0:
             self._log_figure()
@@ -108,10 +108,11 @@ class MaterialSystem(L.LightningModule):
                 self.test_baseline_metrics[k.replace("/", "__")].update(v)
 
     def on_test_epoch_end(self):
-        self.log_dict({f"test/{k}": m.compute() for k, m in self.test_metrics.items()})
+        self.log_dict({f"test/{k}": m.compute() for k, m in self.test_metrics.items()}, sync_dist=True)
         if self.test_baseline_metrics is not None:
             self.log_dict(
-                {f"test_baseline/{k.replace('__', '/')}": m.compute() for k, m in self.test_baseline_metrics.items()}
+                {f"test_baseline/{k.replace('__', '/')}": m.compute() for k, m in self.test_baseline_metrics.items()},
+                sync_dist=True,
             )
 
     def configure_optimizers(self):
