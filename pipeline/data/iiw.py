@@ -9,6 +9,7 @@ The test split is every 5th id of all ids sorted *as strings* (positions 0, 5, 1
 from __future__ import annotations
 
 import json
+import math
 from pathlib import Path
 
 import numpy as np
@@ -78,16 +79,26 @@ def validate_judgements(data, path) -> None:
     for p in data["intrinsic_points"]:
         if not isinstance(p, dict) or not {"id", "x", "y", "opaque"} <= p.keys():
             raise IIWError(f"{path}: intrinsic point {p!r} needs id, x, y and opaque")
-        if not (0 <= float(p["x"]) < 1 and 0 <= float(p["y"]) < 1):
-            raise IIWError(f"{path}: point {p['id']!r} has x={p['x']}, y={p['y']} outside [0, 1)")
+        if not isinstance(p["id"], int | str) or isinstance(p["id"], bool):
+            raise IIWError(f"{path}: intrinsic point id {p['id']!r} is not an integer or a string")
+        if not all(_is_number(p[k]) and 0 <= p[k] < 1 for k in ("x", "y")):
+            raise IIWError(f"{path}: point {p['id']!r} has x={p['x']!r}, y={p['y']!r}: outside [0, 1) or not numbers")
         ids.add(p["id"])
     for c in data["intrinsic_comparisons"]:
         if not isinstance(c, dict) or not {"point1", "point2", "darker", "darker_score"} <= c.keys():
             raise IIWError(f"{path}: comparison {c!r} needs point1, point2, darker and darker_score")
         for end in ("point1", "point2"):
-            if c[end] not in ids:
+            if not isinstance(c[end], int | str) or c[end] not in ids:
                 raise IIWError(f"{path}: comparison {c.get('id')!r} points at unknown point {c[end]!r}")
         if c["darker"] not in ("1", "2", "E", None):
             raise IIWError(f"{path}: comparison {c.get('id')!r} has darker={c['darker']!r} (1, 2, E or null)")
-        if c["darker_score"] is not None and not isinstance(c["darker_score"], int | float):
-            raise IIWError(f"{path}: comparison {c.get('id')!r} has a non-numeric darker_score")
+        if c["darker_score"] is not None and not (_is_number(c["darker_score"]) and c["darker_score"] >= 0):
+            raise IIWError(
+                f"{path}: comparison {c.get('id')!r} has darker_score={c['darker_score']!r} "
+                "(a finite weight >= 0 or null)"
+            )
+
+
+def _is_number(v) -> bool:
+    """A finite JSON number (not a bool, not NaN/inf, which Python's json accepts)."""
+    return isinstance(v, int | float) and not isinstance(v, bool) and math.isfinite(v)

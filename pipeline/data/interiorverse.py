@@ -58,7 +58,11 @@ def read_split(root: str | Path, split: str) -> list[str]:
     path = Path(root) / f"{split}.txt"
     if not path.is_file():
         raise DatasetError(f"{path}: split file not found (expected train.txt, val.txt, test.txt in {root})")
-    scenes = [line.strip() for line in path.read_text().splitlines() if line.strip() and not line.startswith("#")]
+    try:
+        text = path.read_bytes().decode("utf-8")
+    except UnicodeDecodeError as exc:
+        raise DatasetError(f"{path}: split file is not UTF-8 text ({exc.reason} at byte {exc.start})") from exc
+    scenes = [line.strip() for line in text.splitlines() if line.strip() and not line.startswith("#")]
     if not scenes:
         raise DatasetError(f"{path}: split file lists no scenes")
     if len(set(scenes)) != len(scenes):
@@ -73,7 +77,8 @@ def read_splits(root: str | Path) -> dict[str, list[str]]:
     for split, scenes in splits.items():
         for scene in scenes:
             if scene in seen:
-                raise DatasetError(f"{root}: scene {scene!r} is listed in both {seen[scene]}.txt and {split}.txt")
+                first, second = (Path(root) / f"{name}.txt" for name in (seen[scene], split))
+                raise DatasetError(f"{first}, {second}: both list scene {scene!r} (a scene belongs to one split)")
             seen[scene] = split
     return splits
 
@@ -97,7 +102,14 @@ def list_views(root: str | Path, scene: str) -> list[str]:
 
 
 def split_views(root: str | Path, splits: dict[str, list[str]]) -> list[tuple[str, str, str]]:
-    """Every (split, scene, view) of the listed scenes, in split-file order."""
+    """Every (split, scene, view) of the listed scenes, in split-file order. A listed scene without a
+    folder is an error naming the split file that lists it."""
+    for split, scenes in splits.items():
+        for scene in scenes:
+            if not (Path(root) / scene).is_dir():
+                raise DatasetError(
+                    f"{Path(root) / (split + '.txt')}: lists scene {scene!r}, which has no folder in {root}"
+                )
     return [
         (split, scene, view) for split, scenes in splits.items() for scene in scenes for view in list_views(root, scene)
     ]
@@ -108,9 +120,12 @@ def read_cameras(root: str | Path, scene: str) -> dict | None:
     if not path.is_file():
         return None
     try:
-        return json.loads(path.read_text())
-    except json.JSONDecodeError as exc:
+        cameras = json.loads(path.read_bytes().decode("utf-8"))
+    except (json.JSONDecodeError, UnicodeDecodeError) as exc:
         raise DatasetError(f"{path}: not valid JSON ({exc})") from exc
+    if not isinstance(cameras, dict) or not all(isinstance(v, dict) for v in cameras.values()):
+        raise DatasetError(f"{path}: expected an object of views, each an object with fov_x_deg")
+    return cameras
 
 
 # ----------------------------------------------------------------------------------------------------

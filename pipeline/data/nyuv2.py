@@ -30,26 +30,12 @@ def read_labeled(path: str | Path, indices=None) -> tuple[np.ndarray, np.ndarray
     except OSError as exc:
         raise NYUError(f"{path}: not an HDF5 (MATLAB v7.3) file ({exc})") from exc
     with f:
-        for key in ("images", "depths"):
-            if key not in f:
-                raise NYUError(f"{path}: missing dataset {key!r}")
-        images, depths = f["images"], f["depths"]
-        if images.ndim != 4 or images.shape[1] != 3:
-            raise NYUError(f"{path}: 'images' has shape {images.shape}, expected (N, 3, W, H)")
-        if depths.ndim != 3 or depths.shape[0] != images.shape[0] or depths.shape[1:] != images.shape[2:]:
-            raise NYUError(
-                f"{path}: 'depths' has shape {depths.shape}, expected (N, W, H) = "
-                f"{(images.shape[0],) + images.shape[2:]}"
-            )
-        n = images.shape[0]
-        idx = np.arange(n) if indices is None else np.asarray(indices, np.int64)
-        if idx.size and (idx.min() < 0 or idx.max() >= n):
-            raise NYUError(f"{path}: image index out of range 0..{n - 1}")
-        uniq = np.unique(idx)  # h5py reads strictly increasing indices; map back to the caller's order
-        im = images[list(uniq)][np.searchsorted(uniq, idx)] if idx.size else np.zeros((0, *images.shape[1:]), np.uint8)
-        dp = (
-            depths[list(uniq)][np.searchsorted(uniq, idx)] if idx.size else np.zeros((0, *depths.shape[1:]), np.float32)
-        )
+        try:
+            im, dp = _read_datasets(f, path, indices)
+        except NYUError:
+            raise
+        except Exception as exc:  # h5py raises OSError, KeyError, RuntimeError... on damaged structure
+            raise NYUError(f"{path}: cannot read 'images'/'depths' ({type(exc).__name__}: {exc})") from exc
     im = np.ascontiguousarray(np.transpose(im, (0, 3, 2, 1)))  # (N, 3, W, H) -> (N, H, W, 3)
     dp = np.ascontiguousarray(np.transpose(dp, (0, 2, 1)).astype(np.float32))
     if im.dtype != np.uint8:
@@ -59,14 +45,38 @@ def read_labeled(path: str | Path, indices=None) -> tuple[np.ndarray, np.ndarray
     return im, dp
 
 
+def _read_datasets(f, path: Path, indices) -> tuple[np.ndarray, np.ndarray]:
+    """The raw (K, 3, W, H) images and (K, W, H) depths of `indices` from the open HDF5 file `f`."""
+    import h5py
+
+    for key in ("images", "depths"):
+        if not isinstance(f.get(key), h5py.Dataset):
+            raise NYUError(f"{path}: missing dataset {key!r}")
+    images, depths = f["images"], f["depths"]
+    if images.ndim != 4 or images.shape[1] != 3:
+        raise NYUError(f"{path}: 'images' has shape {images.shape}, expected (N, 3, W, H)")
+    if depths.ndim != 3 or depths.shape[0] != images.shape[0] or depths.shape[1:] != images.shape[2:]:
+        raise NYUError(
+            f"{path}: 'depths' has shape {depths.shape}, expected (N, W, H) = {(images.shape[0],) + images.shape[2:]}"
+        )
+    n = images.shape[0]
+    idx = np.arange(n) if indices is None else np.asarray(indices, np.int64)
+    if idx.size and (idx.min() < 0 or idx.max() >= n):
+        raise NYUError(f"{path}: image index out of range 0..{n - 1}")
+    uniq = np.unique(idx)  # h5py reads strictly increasing indices; map back to the caller's order
+    im = images[list(uniq)][np.searchsorted(uniq, idx)] if idx.size else np.zeros((0, *images.shape[1:]), np.uint8)
+    dp = depths[list(uniq)][np.searchsorted(uniq, idx)] if idx.size else np.zeros((0, *depths.shape[1:]), np.float32)
+    return im, dp
+
+
 def count_images(path: str | Path) -> int:
     import h5py
 
     try:
         with h5py.File(path, "r") as f:
             return int(f["images"].shape[0])
-    except (OSError, KeyError) as exc:
-        raise NYUError(f"{path}: cannot read 'images' ({exc})") from exc
+    except Exception as exc:  # not HDF5, no 'images', a group where a dataset belongs, damaged metadata
+        raise NYUError(f"{path}: cannot read 'images' ({type(exc).__name__}: {exc})") from exc
 
 
 def read_splits(path: str | Path, n_images: int) -> dict[str, np.ndarray]:
@@ -78,13 +88,19 @@ def read_splits(path: str | Path, n_images: int) -> dict[str, np.ndarray]:
         raise NYUError(f"{path}: no such file")
     try:
         mat = loadmat(path)
-    except (ValueError, OSError, TypeError) as exc:
-        raise NYUError(f"{path}: not a MATLAB file ({exc})") from exc
+    except Exception as exc:  # scipy raises MatReadError, ValueError, NotImplementedError... by damage
+        raise NYUError(f"{path}: not a MATLAB file ({type(exc).__name__}: {exc})") from exc
     out = {}
     for split, key in (("train", "trainNdxs"), ("test", "testNdxs")):
         if key not in mat:
             raise NYUError(f"{path}: missing {key!r}")
-        one_based = np.asarray(mat[key]).astype(np.int64).ravel()
+        try:
+            values = np.asarray(mat[key], dtype=np.float64).ravel()
+        except (TypeError, ValueError) as exc:
+            raise NYUError(f"{path}: {key!r} is not numeric ({exc})") from exc
+        if not np.isfinite(values).all() or (values != np.round(values)).any():
+            raise NYUError(f"{path}: {key!r} holds values that are not whole image numbers")
+        one_based = values.astype(np.int64)
         if one_based.size == 0:
             raise NYUError(f"{path}: {key!r} is empty")
         if one_based.min() < 1 or one_based.max() > n_images:

@@ -82,9 +82,13 @@ def rescale_light(light: dict, src_hw: tuple[int, int], dst_hw: tuple[int, int])
 
 def _fov(root: Path, scene: str, view: str, cameras: dict | None, default: float | None) -> float:
     if cameras is not None:
+        path = root / scene / "cameras.json"
         if view not in cameras or "fov_x_deg" not in cameras[view]:
-            raise iv.DatasetError(f"{root / scene / 'cameras.json'}: no fov_x_deg for view {view!r}")
-        return float(cameras[view]["fov_x_deg"])
+            raise iv.DatasetError(f"{path}: no fov_x_deg for view {view!r}")
+        fov = cameras[view]["fov_x_deg"]
+        if isinstance(fov, bool) or not isinstance(fov, int | float) or not 0.0 < fov < 180.0:
+            raise iv.DatasetError(f"{path}: view {view!r} has fov_x_deg={fov!r}, expected degrees in (0, 180)")
+        return float(fov)
     if default is None:
         raise iv.DatasetError(f"{root / scene}: no cameras.json; set data.interiorverse.fov_x_deg for this dataset")
     return float(default)

@@ -135,8 +135,8 @@ def test_bad_views_are_rejected_with_file_and_reason(dataset_copy, tmp_path):
     [
         ("empty", "test.txt: split file lists no scenes"),
         ("missing", "val.txt: split file not found"),
-        ("twice", "listed in both"),
-        ("no_folder", "scene folder listed in a split file does not exist"),
+        ("twice", "both list scene"),
+        ("no_folder", "test.txt: lists scene 'ghost_scene', which has no folder"),
     ],
 )
 def test_bad_split_files_raise_naming_the_file(dataset_copy, tmp_path, problem, match):
