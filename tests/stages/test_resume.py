@@ -66,29 +66,34 @@ def _overrides(stage, shards, tmp, experiment):
 
 @pytest.fixture(scope="module")
 def killed(micro_shards, tmp_path_factory):
-    """Both stages killed mid-epoch, in two processes at once: {stage: (out root, overrides, rc)}."""
-    procs = {}
-    for stage in STAGES:
-        tmp = tmp_path_factory.mktemp(f"killed_{stage}")
-        overrides = _overrides(stage, micro_shards, tmp, f"test-resume-{stage}")
-        script = KILLED_RUN.format(root=str(ROOT))
-        procs[stage] = (
-            tmp,
-            overrides,
-            subprocess.Popen(
-                [sys.executable, "-c", script, stage, json.dumps(overrides), str(KILL_EPOCH)],
+    """kill(stage) -> (out root, overrides, rc, log, experiment): the stage killed mid-epoch in its own
+    process, once per stage and module (on whichever worker asks first)."""
+    done = {}
+
+    def kill(stage):
+        if stage not in done:
+            tmp = tmp_path_factory.mktemp(f"killed_{stage}")
+            experiment = f"test-resume-{stage}-{tmp.name}"  # unique even if two workers both run it
+            overrides = _overrides(stage, micro_shards, tmp, experiment)
+            proc = subprocess.run(
+                [
+                    sys.executable,
+                    "-c",
+                    KILLED_RUN.format(root=str(ROOT)),
+                    stage,
+                    json.dumps(overrides),
+                    str(KILL_EPOCH),
+                ],
                 cwd=tmp,
                 env=os.environ.copy(),
-                stdout=subprocess.PIPE,
-                stderr=subprocess.STDOUT,
+                capture_output=True,
                 text=True,
-            ),
-        )
-    out = {}
-    for stage, (tmp, overrides, proc) in procs.items():
-        log, _ = proc.communicate(timeout=600)
-        out[stage] = (tmp, overrides, proc.returncode, log)
-    return out
+                timeout=600,
+            )
+            done[stage] = (tmp, overrides, proc.returncode, proc.stdout + proc.stderr, experiment)
+        return done[stage]
+
+    return kill
 
 
 @pytest.mark.parametrize("stage", list(STAGES))
@@ -96,9 +101,8 @@ def test_killed_stage_resumes_to_the_uninterrupted_result(killed, micro_shards, 
     import importlib
 
     module = importlib.import_module(f"pipeline.runs.{stage}")
-    tmp, overrides, rc, log = killed[stage]
+    tmp, overrides, rc, log, experiment = killed(stage)
     assert rc == -signal.SIGKILL, f"{stage} was not killed (rc {rc}):\n{log[-3000:]}"
-    experiment = f"test-resume-{stage}"
     [killed_run] = mlflow.search_runs(experiment_names=[experiment], output_format="list")
     assert killed_run.info.status == "RUNNING"  # SIGKILL left it open: nobody could end it
     assert not (tmp / "reports" / stage / "metrics.json").exists()  # no half-finished report
@@ -126,7 +130,7 @@ def test_killed_stage_resumes_to_the_uninterrupted_result(killed, micro_shards, 
 def test_resume_refuses_a_truncated_or_foreign_checkpoint(killed, tmp_path):
     from pipeline.systems.trainer import resume_checkpoint
 
-    tmp, *_ = killed["train_material"]
+    tmp, *_ = killed("train_material")
     last = tmp / "outputs" / "train_material" / "checkpoints" / "last.ckpt"
     cut = tmp_path / "cut.ckpt"
     cut.write_bytes(last.read_bytes()[: last.stat().st_size // 2])
