@@ -82,8 +82,9 @@ def case_centre(case: case_io.Case, gt: dict, fov: float, w2v: np.ndarray) -> to
     return pts.mean(0)
 
 
-def score_view(ctx: dict, cases: list[case_io.Case], cfg: DictConfig) -> list[dict]:
-    """Every row of every case of one view: [{"case", "rows": {row: scores}, "renders": {row: (M, 3)}}]."""
+def score_view(ctx: dict, cases: list[case_io.Case], cfg: DictConfig, rows: tuple = ROWS) -> list[dict]:
+    """`rows` (all by default) of every case of one view:
+    [{"case", "rows": {row: scores}, "renders": {row: (M, 3)}}]."""
     fov, gt, pred, im, scale = ctx["fov"], ctx["gt"], ctx["pred"], ctx["im"], ctx["scale"]
     photo = im[0].permute(1, 2, 0)
     constants, free = ctx["constants"], ctx["light"].free
@@ -100,12 +101,12 @@ def score_view(ctx: dict, cases: list[case_io.Case], cfg: DictConfig) -> list[di
             obj = {"albedo": case.albedo, "material": case.material, "normal": case.normal, "depth": case.depth}
             shade_pred = composite_gbuffer(pred, case.pixel, **obj)
             shade_gt = composite_gbuffer(gt, case.pixel, **obj)
-            oracle = ctx["oracle"].for_object(InsertedObject(**case.description))
+            oracle = ctx["oracle"].for_object(InsertedObject(**case.description)) if "oracle" in rows else None
         else:
             d = case.description
             shade_pred = edited_gbuffer(pred, case.pixel, d["albedo"], d["roughness"], d["metallic"])
             shade_gt = composite_gbuffer(gt, case.pixel, albedo=case.albedo, material=case.material)
-            oracle = ctx["oracle"].for_edit(MaterialEdit(**case.description))
+            oracle = ctx["oracle"].for_edit(MaterialEdit(**case.description)) if "oracle" in rows else None
         centre = case_centre(case, gt, fov, ctx["w2v"])
         probe = int(torch.argmin((free.position - centre).norm(dim=-1)))
         probe_map = free.radiance[probe : probe + 1]
@@ -116,7 +117,7 @@ def score_view(ctx: dict, cases: list[case_io.Case], cfg: DictConfig) -> list[di
         }
         renders, scores, seconds = {}, {}, {}
         case_seed = seed + 7919 * len(out)
-        for row in ROWS:
+        for row in rows:
             shading = shade_gt if row in ("lightnet_gt_gbuffers", "oracle") else shade_pred
             layer = ctx["oracle_layer"] if row == "oracle" else ctx["layer"]
             t0 = time.perf_counter()
@@ -129,9 +130,9 @@ def score_view(ctx: dict, cases: list[case_io.Case], cfg: DictConfig) -> list[di
     return out
 
 
-def summarise(records: list[dict], resamples: int, seed: int) -> dict[str, float]:
+def summarise(records: list[dict], resamples: int, seed: int, rows: tuple = ROWS) -> dict[str, float]:
     """Means per group (material class of objects, kind of edits, and all of each) and paired bootstrap
-    intervals of LightNet minus every other row."""
+    intervals of LightNet minus every other row of `rows` (whose first is `lightnet`)."""
     metrics: dict[str, float] = {}
     groups: dict[str, list[dict]] = {}
     for r in records:
@@ -140,14 +141,14 @@ def summarise(records: list[dict], resamples: int, seed: int) -> dict[str, float
         groups.setdefault(f"{prefix}/all", []).append(r)
     for group, rs in sorted(groups.items()):
         metrics[f"{group}/cases"] = float(len(rs))
-        for row in ROWS:
+        for row in rows:
             for s in SCORES:
                 metrics[f"{group}/{row}/{s}"] = float(np.mean([r[f"{row}/{s}"] for r in rs]))
         # what an exact render would score against this ground truth, given the truth's own noise
         metrics[f"{group}/ground_truth/noise_floor_psnr"] = float(
             np.mean([r["ground_truth/noise_floor_psnr"] for r in rs])
         )
-        for row in ROWS[1:]:
+        for row in rows[1:]:
             for s in SCORES:
                 diff = [r[f"lightnet/{s}"] - r[f"{row}/{s}"] for r in rs]
                 ci = paired_bootstrap(diff, resamples, seed, groups=[r["view"] for r in rs])
@@ -223,7 +224,9 @@ def stage_setup(cfg: DictConfig) -> dict:
     }
 
 
-def view_context(shared: dict, scene: str, view: str, cfg: DictConfig) -> tuple[dict, list[case_io.Case]]:
+def view_context(
+    shared: dict, scene: str, view: str, cfg: DictConfig, oracle: bool = True
+) -> tuple[dict, list[case_io.Case]]:
     """One view read and checked, its G-buffers predicted, LightNet's contexts and the oracle built:
     (the context `score_view` takes, the view's cases)."""
     root, split = shared["root"], str(cfg.split)
@@ -266,9 +269,33 @@ def view_context(shared: dict, scene: str, view: str, cfg: DictConfig) -> tuple[
             "ctx_pred": net.encode(im, pred["depth"], fov),
             "ctx_gt": net.encode(im, gt["depth"], fov),
             "w2v": np.asarray(camera["world_from_view"]),
-            "oracle": MitsubaOracle(room, room.cameras[int(view)], shared["max_depth"], int(cfg.oracle.paths), seed),
+            "oracle": (
+                MitsubaOracle(room, room.cameras[int(view)], shared["max_depth"], int(cfg.oracle.paths), seed)
+                if oracle
+                else None
+            ),
         }
     return ctx, cases
+
+
+def score_rows(cfg: DictConfig, rows: tuple, progress: bool = False) -> tuple[dict[str, float], list[dict]]:
+    """The stage's summary metrics for `rows` only (the first `lightnet`), and the per-case records
+    ({view, kind, label, <row>/<score>}), without its files: what the ablations score every preset's
+    LightNet export (`cfg.light_path`) with."""
+    if rows[0] != "lightnet" or not set(rows) <= set(ROWS):
+        raise ValueError(f"rows={rows}: the first must be lightnet, all of {ROWS}")
+    shared = stage_setup(cfg)
+    records = []
+    for scene, view in tqdm(shared["views"], desc="insertion", unit="view", disable=not progress):
+        ctx, cases = view_context(shared, scene, view, cfg, oracle="oracle" in rows)
+        for res in score_view(ctx, cases, cfg, rows):
+            row = {"view": ctx["id"], "kind": res["case"].kind, "label": res["case"].label}
+            for name, sc in res["rows"].items():
+                row.update({f"{name}/{k}": v for k, v in sc.items()})
+            records.append(row)
+    if not records:
+        raise iv.DatasetError(f"{shared['root']}: the {cfg.split} views' case files list no case")
+    return summarise(records, int(cfg.bootstrap), int(cfg.seed), rows), records
 
 
 def run(cfg: DictConfig) -> dict[str, float]:

@@ -40,6 +40,7 @@ def build_system(cfg: DictConfig) -> LightingSystem:
         texels=int(lt.texels),
         free_probes=int(lt.free_probes),
         render_weight=float(lt.render_weight),
+        light_weight=float(lt.light_weight),
         eval_stride=int(lt.eval_stride),
         optimizer=instantiate(cfg.optim.optimizer),
         scheduler=instantiate(sched) if sched is not None else None,
@@ -70,7 +71,7 @@ def run(cfg: DictConfig) -> dict[str, float]:
         trainer = stage_trainer(run, OmegaConf.to_container(cfg.trainer, resolve=True), out, [ckpt], bool(cfg.progress))
         # the first validation pass (before any training step) records the starting re-render PSNR; a
         # resumed run repeats it on the same seeded initialisation, so it reports the same number
-        start = trainer.validate(system, datamodule=dm, verbose=False)[0]
+        start = trainer.validate(system, datamodule=dm, verbose=False)[0] if cfg.lighting.validate_before else None
         trainer.fit(system, datamodule=dm, ckpt_path=resume, weights_only=True)
         if system.validated_at_step == trainer.global_step:  # the last epoch was validated: same weights
             last = float(trainer.callback_metrics["val/render_psnr"])
@@ -93,7 +94,8 @@ def run(cfg: DictConfig) -> dict[str, float]:
         }
         metrics = {f"{mode}/test/{k}": v for k, v in logged.items() if "/" not in k}
         metrics.update({f"baseline/{k}": v for k, v in logged.items() if "/" in k})
-        metrics[f"{mode}/val/render_psnr_before_training"] = float(start["val/render_psnr"])
+        if start is not None:
+            metrics[f"{mode}/val/render_psnr_before_training"] = float(start["val/render_psnr"])
         metrics[f"{mode}/val/render_psnr_after_training"] = after
         metrics[f"{mode}/val/render_psnr_last_epoch"] = last
         metrics["global_step"] = float(trainer.global_step)

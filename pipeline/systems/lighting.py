@@ -57,6 +57,7 @@ class LightingSystem(L.LightningModule):
         texels: int = 16,
         free_probes: int = 2,
         render_weight: float = 1.0,
+        light_weight: float = 1.0,
         eval_stride: int = 4,
         optimizer: Callable | None = None,
         scheduler: Callable | None = None,
@@ -79,6 +80,7 @@ class LightingSystem(L.LightningModule):
         self.eval_seed = int(render["seed"])
         self.pixels, self.probes, self.texels, self.free_probes = pixels, probes, texels, free_probes
         self.render_weight, self.eval_stride = float(render_weight), int(eval_stride)
+        self.light_weight = float(light_weight)  # 0: no direct light supervision (the re-render loss alone)
         self.optimizer_fn, self.scheduler_fn = optimizer, scheduler
         self.generator = torch.Generator().manual_seed(int(seed))
         self.baselines = None  # lighting_baselines.Constants, set by the stage before testing
@@ -157,7 +159,7 @@ class LightingSystem(L.LightningModule):
             for kind, n in (("surf", self.probes), ("free", self.free_probes))
         ]
         rays = ProbeRays.cat([p for p in parts if p is not None])
-        if rays is not None:
+        if rays is not None and self.light_weight > 0:
             rays = rays.to(self.device)
             pred = self.net(ctx, gb, fov, rays.origin, rays.direction, rays.image, self.generator)["radiance"]
             losses["light"] = hdr_relative_loss(pred, rays.radiance, scale[rays.image])
@@ -167,7 +169,7 @@ class LightingSystem(L.LightningModule):
         )
         target = pixel_values(batch["im"], pix)
         losses["render"] = (((rgb - target) / scale[b, None]) ** 2).mean()
-        total = losses.get("light", 0.0) + self.render_weight * losses["render"]
+        total = self.light_weight * losses.get("light", 0.0) + self.render_weight * losses["render"]
         bs = batch["im"].shape[0]
         self.log("train/loss", total, prog_bar=True, on_step=True, on_epoch=True, batch_size=bs, sync_dist=True)
         for k, v in losses.items():

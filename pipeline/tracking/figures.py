@@ -217,3 +217,41 @@ def insertion_grid(panels: list[dict], path: str | Path, title: str = "") -> Pat
     for ax, name in zip(axes[0], cols, strict=True):
         ax.set_title(name.replace("_", " "), fontsize=6)
     return save(fig, path, title)
+
+
+def pareto_front(xs: list[float], ys: list[float]) -> list[int]:
+    """Indices of the points no other point beats on both axes (lower x = faster, higher y = better),
+    ordered by x. Non-finite points are never on the front."""
+    idx = [i for i in range(len(xs)) if np.isfinite(xs[i]) and np.isfinite(ys[i])]
+    front = [
+        i for i in idx if not any(xs[j] <= xs[i] and ys[j] >= ys[i] and (xs[j] < xs[i] or ys[j] > ys[i]) for j in idx)
+    ]
+    return sorted(front, key=lambda i: xs[i])
+
+
+def pareto_figure(points: list[dict], path: str | Path, title: str = "") -> Path:
+    """Accuracy against cost, one labelled dot per point ({label, seconds, train_minutes, insertion_psnr,
+    render_psnr}), the Pareto front as a line: columns insertion PSNR / re-render PSNR, rows against
+    seconds per image / training minutes."""
+    fig, axes = plt.subplots(2, 2, figsize=(12, 9))
+    for col, (acc, acc_label) in enumerate(
+        (("insertion_psnr", "insertion PSNR, all objects (dB)"), ("render_psnr", "test re-render PSNR (dB)"))
+    ):
+        for row, (cost, cost_label) in enumerate(
+            (("seconds", "full-frame re-render, s/image"), ("train_minutes", "training, minutes"))
+        ):
+            ax = axes[row, col]
+            xs = [p[cost] for p in points]
+            ys = [p[acc] for p in points]
+            shown = [i for i in range(len(points)) if np.isfinite(xs[i]) and np.isfinite(ys[i])]
+            ax.scatter([xs[i] for i in shown], [ys[i] for i in shown], s=28, color="tab:blue", zorder=3)
+            for i in shown:
+                ax.annotate(points[i]["label"], (xs[i], ys[i]), fontsize=7, xytext=(3, 3), textcoords="offset points")
+            front = pareto_front(xs, ys)
+            if front:
+                ax.plot([xs[i] for i in front], [ys[i] for i in front], color="tab:red", lw=1.2, label="Pareto front")
+                ax.legend(fontsize=8, loc="lower right")
+            ax.set_xlabel(cost_label)
+            ax.set_ylabel(acc_label)
+            ax.grid(alpha=0.3)
+    return save(fig, path, title)

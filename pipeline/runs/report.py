@@ -1,0 +1,307 @@
+"""Stage `report` (last): every ablation preset and seed (`reports/ablate/*/`) and every main stage's
+metrics gathered into `reports/report/`:
+
+- `ablations.md`: the paper-style table. Per preset, means over seeds with their spread (half the range),
+  and against its reference (`full` for LightNet, `material_small` for MaterialNet) the paired difference
+  per seed on the preset's claim metric. A difference counts only when every seed's difference has the
+  same sign and its mean exceeds the reference's own seed spread; otherwise it is "no difference". Beside
+  each claim of the paper: supported, contradicted, or not shown. Then stability (non-finite metrics,
+  unavailable presets, the five worst test views are in the stage reports) and the main stages' gates.
+- `pareto.png`: accuracy (insertion PSNR over all objects, and test re-render PSNR) against full-frame
+  seconds per image, one point per preset (mean over seeds) and per test-time threshold, the Pareto
+  front marked; training minutes in the second row.
+- `summary.md`: links to every figure under reports/ and the headline numbers.
+- `metrics.json`: the table's numbers (DVC metrics).
+The MLflow run `report-<profile>` holds them, with a nested `ablate-<profile>` parent run to which every
+preset/seed run of the current reports is attached (MLflow's parent tag), carrying the same figures.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+from pathlib import Path
+
+import numpy as np
+from omegaconf import DictConfig
+
+from pipeline.tracking import publish, stage_run
+from pipeline.tracking.figures import pareto_figure
+
+# (key, label, higher is better) of the table's columns
+LIGHT_COLUMNS = [
+    ("test/render_psnr", "re-render PSNR", True),
+    ("test/surf_light_log_l1", "surface log-L1", False),
+    ("test/free_light_log_l1", "free log-L1", False),
+    ("edit/insert/mirror/lightnet/psnr", "mirror ins. PSNR", True),
+    ("edit/insert/glossy/lightnet/psnr", "glossy ins. PSNR", True),
+    ("edit/insert/all/lightnet/psnr", "all ins. PSNR", True),
+]
+MATERIAL_COLUMNS = [
+    ("test/albedo_mse", "albedo MSE", False),
+    ("test/normal_angle_deg", "normal deg", False),
+    ("test/roughness_mse", "roughness MSE", False),
+    ("test/metallic_mse", "metallic MSE", False),
+    ("test/depth_log_mse", "depth log-MSE", False),
+]
+
+
+def read_runs(ablate_dir: Path) -> dict[str, dict[int, dict]]:
+    """{preset: {seed: {"preset": preset.json, "metrics": ..., "timings": ...}}} of every run folder."""
+    runs: dict[str, dict[int, dict]] = {}
+    for folder in sorted(p for p in ablate_dir.iterdir() if p.is_dir()):
+        files = {name: folder / f"{name}.json" for name in ("preset", "metrics", "timings")}
+        missing = [str(f) for name, f in files.items() if name != "timings" and not f.is_file()]
+        if missing:
+            raise FileNotFoundError(f"{folder}: an ablation run without {', '.join(missing)} (re-run it)")
+        data = {name: json.loads(f.read_text()) if f.is_file() else {} for name, f in files.items()}
+        worst = folder / "worst_views.json"
+        data["worst_views"] = json.loads(worst.read_text()) if worst.is_file() else []
+        runs.setdefault(data["preset"]["name"], {})[int(data["preset"]["seed"])] = data
+    if not runs:
+        raise FileNotFoundError(f"{ablate_dir}: no ablation run folders (run the ablate stage first)")
+    return runs
+
+
+def spread(values: list[float]) -> tuple[float, float]:
+    """(mean, half the range) of per-seed values; half-range 0 for one seed."""
+    v = np.asarray(values, float)
+    return float(v.mean()), float((v.max() - v.min()) / 2) if len(v) > 1 else 0.0
+
+
+def compare(runs: dict, preset: str, reference: str, key: str, higher: bool) -> dict:
+    """Paired per-seed differences preset - reference on `key`; the verdict from their signs against
+    the reference's seed spread: 'preset better', 'reference better' or 'no difference'."""
+    seeds = sorted(set(runs.get(preset, {})) & set(runs.get(reference, {})))
+    diffs = []
+    for s in seeds:
+        a, b = runs[preset][s]["metrics"].get(key), runs[reference][s]["metrics"].get(key)
+        if a is not None and b is not None and math.isfinite(a) and math.isfinite(b):
+            diffs.append(a - b)
+    if not diffs:
+        return {"seeds": 0, "diffs": [], "verdict": "not measured"}
+    _, ref_spread = spread([runs[reference][s]["metrics"][key] for s in seeds])
+    mean = float(np.mean(diffs))
+    same_sign = all(d > 0 for d in diffs) or all(d < 0 for d in diffs)
+    if len(diffs) < 2 or not same_sign or abs(mean) <= ref_spread:
+        verdict = "no difference"
+    else:
+        verdict = "preset better" if (mean > 0) == higher else "reference better"
+    return {"seeds": len(diffs), "diffs": diffs, "mean": mean, "reference_spread": ref_spread, "verdict": verdict}
+
+
+def claim_status(preset: dict, verdict: str) -> str:
+    if not preset.get("claim"):
+        return ""
+    if verdict in ("no difference", "not measured"):
+        return "not shown"
+    wanted = preset["expect"]["holds_if"].replace("_", " ")
+    return "supported" if verdict == wanted else "contradicted"
+
+
+def _fmt(mean: float, half: float) -> str:
+    if not math.isfinite(mean):
+        return "n/a"
+    digits = 3 if abs(mean) < 10 else 2
+    return f"{mean:.{digits}f} ± {half:.{digits}f}" if half else f"{mean:.{digits}f}"
+
+
+def table(runs: dict, stage: str, columns: list) -> tuple[list[str], dict[str, float]]:
+    """Markdown rows of one stage's presets and the numbers behind them."""
+    lines, numbers = [], {}
+    header = [
+        "preset",
+        "changes",
+        "seeds",
+        *[c[1] for c in columns],
+        "s/image",
+        "train min",
+        "vs reference",
+        "paper claim",
+        "this run",
+    ]
+    lines.append("| " + " | ".join(header) + " |")
+    lines.append("|" + "---|" * len(header))
+    for name in sorted(runs, key=lambda n: (n != runs[n][next(iter(runs[n]))]["preset"].get("reference"), n)):
+        seeds = runs[name]
+        first = seeds[next(iter(seeds))]["preset"]
+        if first["stage"] != stage:
+            continue
+        if any("unavailable" in d["preset"] for d in seeds.values()):
+            why = next(d["preset"]["unavailable"] for d in seeds.values())
+            lines.append(
+                f"| {name} | {first['changes']} | 0 | "
+                + " | ".join(["-"] * (len(columns) + 2))
+                + f" | unavailable: {why} | {first.get('claim', '')} | not run |"
+            )
+            continue
+        cells = []
+        for key, _, _ in columns:
+            vals = [d["metrics"].get(key, float("nan")) for d in seeds.values()]
+            mean, half = spread(vals)
+            numbers[f"{name}/{key}"] = mean
+            cells.append(_fmt(mean, half))
+        for key in ("seconds_per_image", "train_minutes"):
+            vals = [d["timings"].get(key, float("nan")) for d in seeds.values()]
+            mean, half = spread(vals)
+            cells.append(_fmt(mean, half))
+        ref = first.get("reference", "")
+        versus, status = "", ""
+        if name != ref and first.get("expect"):
+            e = first["expect"]
+            c = compare(runs, name, ref, e["metric"], bool(e["higher_is_better"]))
+            per_seed = ", ".join(f"{d:+.3f}" for d in c["diffs"])
+            versus = f"{e['metric']}: {per_seed} -> {c['verdict']}"
+            status = claim_status(first, c["verdict"])
+            numbers[f"{name}/vs_reference/{e['metric']}"] = c.get("mean", float("nan"))
+        elif name != ref:
+            key = columns[0][0]
+            c = compare(runs, name, ref, key, columns[0][2])
+            versus = f"{key}: " + ", ".join(f"{d:+.3f}" for d in c["diffs"]) + f" -> {c['verdict']}"
+        lines.append(
+            f"| {name} | {first['changes']} | {len(seeds)} | "
+            + " | ".join(cells)
+            + f" | {versus} | {first.get('claim', '')} | {status} |"
+        )
+    return lines, numbers
+
+
+def stability(runs: dict) -> list[str]:
+    """Per preset: non-finite training losses and test metrics, diverged runs, unavailable runs, and the
+    five test views LightNet renders worst (first seed; insertion PSNR, the scaled constant's beside)."""
+    lines = [
+        "| preset | seeds | non-finite train losses | non-finite test metrics | diverged runs | unavailable "
+        "| worst views (LightNet / scaled constant insertion PSNR, dB) |",
+        "|---|---|---|---|---|---|---|",
+    ]
+    for name, seeds in sorted(runs.items()):
+        ds = list(seeds.values())
+
+        def total(key, ds=ds):
+            return int(sum(d["metrics"].get(key, 0.0) for d in ds))
+
+        unavailable = sum("unavailable" in d["preset"] for d in ds)
+        worst = "; ".join(
+            f"{w['view']} {w['lightnet_psnr']:.1f}/{w['scaled_constant_psnr']:.1f}" for w in ds[0]["worst_views"]
+        )
+        lines.append(
+            f"| {name} | {len(ds)} | {total('health/nonfinite_train_losses')} | "
+            f"{total('health/nonfinite_test_metrics')} | {total('health/diverged')} | {unavailable} | {worst} |"
+        )
+    return lines
+
+
+def pareto_points(runs: dict) -> list[dict]:
+    """One point per LightNet preset (means over seeds) and per test-time threshold of `full`."""
+    points = []
+    for name, seeds in sorted(runs.items()):
+        ds = list(seeds.values())
+        if ds[0]["preset"]["stage"] != "train_lighting" or "unavailable" in ds[0]["preset"]:
+            continue
+
+        def mean(source, key, ds=ds):
+            vals = [d[source].get(key, float("nan")) for d in ds]
+            return float(np.mean(vals))
+
+        points.append(
+            {
+                "label": name,
+                "seconds": mean("timings", "seconds_per_image"),
+                "train_minutes": mean("timings", "train_minutes"),
+                "insertion_psnr": mean("metrics", "edit/insert/all/lightnet/psnr"),
+                "render_psnr": mean("metrics", "test/render_psnr"),
+            }
+        )
+        if name == "full":
+            for key in ds[0]["timings"]:
+                if key.startswith("out_threshold_") and key.endswith("/seconds_per_image"):
+                    t = key.removesuffix("/seconds_per_image")
+                    points.append(
+                        {
+                            "label": f"full, {t.replace('_', ' ')}",
+                            "seconds": mean("timings", key),
+                            "train_minutes": float("nan"),
+                            "insertion_psnr": float("nan"),
+                            "render_psnr": mean("metrics", f"{t}/test/render_psnr"),
+                        }
+                    )
+    return points
+
+
+def figure_links(reports: Path, out: Path) -> list[str]:
+    lines = []
+    for png in sorted(reports.rglob("*.png")):
+        if out in png.parents:
+            continue
+        rel = Path("..") / png.relative_to(reports)
+        lines.append(f"- [{png.relative_to(reports)}]({rel})")
+    return lines
+
+
+def run(cfg: DictConfig) -> dict[str, float]:
+    import mlflow
+
+    reports, out = Path(cfg.reports_root), Path(cfg.report_dir)
+    runs = read_runs(Path(cfg.ablate_dir))
+    out.mkdir(parents=True, exist_ok=True)
+    light_rows, light_numbers = table(runs, "train_lighting", LIGHT_COLUMNS)
+    mat_rows, mat_numbers = table(runs, "train_material", MATERIAL_COLUMNS)
+    doc = [
+        f"# Ablations ({cfg.profile_name})",
+        "",
+        "Means over seeds ± half their range. `vs reference`: the preset minus its reference on the claim's",
+        "metric, per seed (same seed, same data, same schedule); a difference counts only when every seed",
+        "agrees in sign and the mean exceeds the reference's own seed spread, else it is no difference.",
+        "s/image: median seconds of a full-frame re-render at the evaluation spp on this machine.",
+        "",
+        "## LightNet",
+        *light_rows,
+        "",
+        "## MaterialNet",
+        *mat_rows,
+        "",
+        "## Stability",
+        *stability(runs),
+    ]
+    (out / "ablations.md").write_text("\n".join(doc) + "\n")
+    points = pareto_points(runs)
+    figure = pareto_figure(points, out / "pareto.png", title=f"accuracy against speed ({cfg.profile_name})")
+    summary = ["# Summary", "", "- [ablations.md](ablations.md)", "- [pareto.png](pareto.png)", "", "## Figures"]
+    summary += figure_links(reports, out)
+    (out / "summary.md").write_text("\n".join(summary) + "\n")
+    metrics = {k: v for k, v in {**light_numbers, **mat_numbers}.items() if math.isfinite(v)}
+    metrics["presets"] = float(len(runs))
+    metrics["runs"] = float(sum(len(s) for s in runs.values()))
+    with stage_run("report", cfg) as run:
+        publish(out, metrics, artifacts=(out / "ablations.md", out / "summary.md", figure))
+        with mlflow.start_run(
+            run_name=f"ablate-{cfg.profile_name}", nested=True, tags={"stage": "ablate", "sweep": "true"}
+        ) as parent:
+            mlflow.log_artifact(str(figure), "figures")
+            mlflow.log_artifact(str(out / "ablations.md"))
+            attach_children(parent.info.run_id, runs, run.info.experiment_id)
+    return metrics
+
+
+def attach_children(parent_id: str, runs: dict, experiment_id: str) -> int:
+    """Make the latest finished `ablate` run of every preset and seed in the reports a child of
+    `parent_id` (MLflow's parent tag); returns how many were attached."""
+    import mlflow
+
+    client = mlflow.MlflowClient()
+    attached = 0
+    for name, seeds in runs.items():
+        for seed in seeds:
+            found = client.search_runs(
+                [experiment_id],
+                filter_string=(
+                    f"tags.stage = 'ablate' and tags.preset = '{name}' and tags.seed = '{seed}' "
+                    "and attributes.status = 'FINISHED'"
+                ),
+                order_by=["attributes.start_time DESC"],
+                max_results=1,
+            )
+            if found:
+                client.set_tag(found[0].info.run_id, "mlflow.parentRunId", parent_id)
+                attached += 1
+    return attached

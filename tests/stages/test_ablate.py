@@ -1,0 +1,210 @@
+"""Ablations: every conf/ablation/ preset composes onto its stage and takes a training step on micro;
+the `ablate` stage and a Hydra multirun of the stage with the same preset and seed give the same
+metrics; the `report` stage's verdicts follow the seed spread; pareto fronts are fronts."""
+
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import mlflow
+import pytest
+import torch
+
+from tests.conftest import CONF, ROOT, compose_cfg
+
+PRESETS = sorted(p.stem for p in (CONF / "ablation").glob("*.yaml"))
+
+
+def test_dvc_runs_every_preset_and_only_existing_ones():
+    import yaml
+
+    listed = {v["preset"] for v in yaml.safe_load((ROOT / "params.yaml").read_text())["ablations"].values()}
+    assert listed == set(PRESETS)
+    assert {"full", "no_mc", "no_rerender_loss", "out_of_view_only", "ssrt_only", "gt_gbuffers"} <= listed
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("preset", PRESETS)
+def test_every_preset_composes_and_takes_a_training_step(micro_shards, micro_exports, preset):
+    from pipeline.runs import ablate, train_lighting, train_material
+    from pipeline.runs.train_material import build_datamodule
+
+    base = ["profile=micro", f"ablation={preset}", f"data_dir={micro_shards}"]
+    stage = ablate.preset_stage(preset)
+    cfg = compose_cfg(
+        stage, [*base, f"material_path={micro_exports / 'material.pt'}"] if stage == "train_lighting" else base
+    )
+    assert cfg.preset.name == preset and cfg.preset.reference in PRESETS
+    if ablate.unavailable(cfg) is not None:  # e.g. no VGG16 weights here: reported, never faked
+        assert preset == "material_perceptual" and "perceptual_weights" in ablate.unavailable(cfg)
+        return
+    if stage == "train_lighting":
+        from pipeline.data.datamodules import InteriorVerseDataModule
+
+        system = train_lighting.build_system(cfg)
+        batch = next(iter(InteriorVerseDataModule(micro_shards, batch_size=2, lighting=True).train_dataloader()))
+        assert cfg.epochs.train_lighting == cfg.ablation_schedule.train_lighting.epochs
+    else:
+        system = train_material.build_system(cfg)
+        batch = next(iter(build_datamodule(cfg).train_dataloader()))
+    opt = system.configure_optimizers()
+    opt = opt["optimizer"] if isinstance(opt, dict) else opt
+    system.trainer = None
+    loss = system.training_step(batch, 0) if stage == "train_material" else _lighting_step(system, batch)
+    loss.backward()
+    opt.step()
+    assert torch.isfinite(loss)
+
+
+def _lighting_step(system, batch):
+    from unittest import mock
+
+    with mock.patch.object(type(system), "log", lambda *a, **k: None):
+        return system.training_step(batch, 0)
+
+
+@pytest.fixture(scope="module")
+def pipeline_outputs(micro_root, micro_shards, micro_exports, tmp_path_factory):
+    """An outputs/ folder as the pipeline leaves it before `ablate`: synthesize, preprocess and
+    train_material's export (untrained, micro)."""
+    out = tmp_path_factory.mktemp("ablate") / "outputs"
+    (out / "train_material").mkdir(parents=True)
+    os.symlink(micro_root, out / "synthesize")
+    os.symlink(micro_shards, out / "preprocess")
+    os.symlink(micro_exports / "material.pt", out / "train_material" / "model.pt")
+    return out
+
+
+@pytest.mark.slow
+def test_ablate_stage_and_hydra_multirun_give_the_same_metrics(pipeline_outputs, tmp_path):
+    from pipeline.runs.ablate import run
+
+    reports = tmp_path / "reports"
+    cfg = compose_cfg(
+        "ablate",
+        [
+            "profile=micro",
+            "preset=full",
+            "seed=0",
+            f"paths.outputs={pipeline_outputs}",
+            f"paths.reports={reports}",
+            "progress=false",
+            "timing_views=1",
+            "bootstrap=50",
+            "tracking.experiment=test-ablate",
+        ],
+    )
+    metrics = run(cfg)
+    folder = reports / "ablate" / "full-s0"
+    assert json.loads((folder / "metrics.json").read_text()) == pytest.approx(metrics)
+    timings = json.loads((folder / "timings.json").read_text())
+    assert timings["seconds_per_image"] > 0 and timings["train_minutes"] > 0
+    assert {"out_threshold_0.5/seconds_per_image", "out_threshold_0.9/seconds_per_image"} <= set(timings)
+    assert "edit/insert/all/lightnet/psnr" in metrics and "out_threshold_0.9/test/render_psnr" in metrics
+    assert metrics["health/diverged"] == 0.0 and metrics["health/logged_train_losses"] > 0
+    assert len(json.loads((folder / "worst_views.json").read_text())) >= 1
+
+    out = subprocess.run(
+        [sys.executable, "-m", "stages.train_lighting", "-m", "ablation=full", "seed=0", "profile=micro"]
+        + [f"paths.outputs={pipeline_outputs}", "progress=false", "hydra.sweep.dir=sweep"]
+        + ["tracking.experiment=test-ablate-multirun"],
+        cwd=tmp_path,
+        env={**os.environ, "PYTHONPATH": str(ROOT)},
+        capture_output=True,
+        text=True,
+        timeout=600,
+    )
+    assert out.returncode == 0, (out.stdout + out.stderr)[-4000:]
+    # the job's report under its own sweep folder (paths.reports is relative)
+    job = json.loads((tmp_path / "sweep" / "0" / "reports" / "train_lighting" / "metrics.json").read_text())
+    job = {k.removeprefix("mixed/"): v for k, v in job.items()}
+    shared = [k for k in job if k.startswith(("test/", "baseline/"))]
+    assert shared and all(job[k] == metrics[k] for k in shared), {
+        k: (job[k], metrics[k]) for k in shared if job[k] != metrics[k]
+    }
+
+    # the report stage gathers it: table, figure, summary, and the run attached to an `ablate` parent
+    from pipeline.runs.report import run as report
+
+    numbers = report(
+        compose_cfg("report", ["profile=micro", f"paths.reports={reports}", "tracking.experiment=test-ablate"])
+    )
+    out = reports / "report"
+    table = (out / "ablations.md").read_text()
+    assert "| full |" in table and "## Stability" in table and numbers["runs"] == 1.0
+    assert (out / "pareto.png").stat().st_size > 10_000 and "pareto.png" in (out / "summary.md").read_text()
+    runs = mlflow.search_runs(experiment_names=["test-ablate"], output_format="list")
+    [parent] = [r for r in runs if r.info.run_name == "ablate-micro" and r.data.tags.get("sweep") == "true"]
+    [child] = [r for r in runs if r.data.tags.get("preset") == "full"]
+    assert child.data.tags["mlflow.parentRunId"] == parent.info.run_id
+
+
+def _fake_runs(tmp_path: Path, values: dict[tuple[str, int], float]) -> Path:
+    root = tmp_path / "ablate"
+    for (preset, seed), v in values.items():
+        d = root / f"{preset}-s{seed}"
+        d.mkdir(parents=True)
+        meta = {"name": preset, "stage": "train_lighting", "changes": preset, "reference": "full", "seed": seed}
+        if preset != "full":
+            meta.update(
+                claim="c",
+                expect={"metric": "test/render_psnr", "higher_is_better": True, "holds_if": "reference_better"},
+            )
+        (d / "preset.json").write_text(json.dumps(meta))
+        (d / "metrics.json").write_text(json.dumps({"test/render_psnr": v, "health/diverged": 0.0}))
+        (d / "timings.json").write_text(json.dumps({"seconds_per_image": 1.0 + seed, "train_minutes": 2.0}))
+    return root
+
+
+def test_report_verdicts_follow_the_seed_spread(tmp_path):
+    from pipeline.runs.report import claim_status, compare, read_runs
+
+    runs = read_runs(
+        _fake_runs(
+            tmp_path,
+            {
+                ("full", 0): 20.0,
+                ("full", 1): 20.4,  # spread 0.2 (half range)
+                ("no_mc", 0): 19.0,
+                ("no_mc", 1): 19.5,  # -1.0, -0.9: every seed, beyond the spread
+                ("spp_2", 0): 20.1,
+                ("spp_2", 1): 20.2,  # +0.1, -0.2: signs differ
+                ("ssrt_only", 0): 19.9,
+                ("ssrt_only", 1): 20.3,  # -0.1, -0.1: inside the spread
+            },
+        )
+    )
+    assert compare(runs, "no_mc", "full", "test/render_psnr", True)["verdict"] == "reference better"
+    assert compare(runs, "spp_2", "full", "test/render_psnr", True)["verdict"] == "no difference"
+    assert compare(runs, "ssrt_only", "full", "test/render_psnr", True)["verdict"] == "no difference"
+    assert compare(runs, "no_mc", "full", "test/render_psnr", False)["verdict"] == "preset better"
+    meta = runs["no_mc"][0]["preset"]
+    assert (
+        claim_status(meta, "reference better") == "supported" and claim_status(meta, "preset better") == "contradicted"
+    )
+    assert claim_status(meta, "no difference") == "not shown"
+
+
+def test_report_refuses_a_run_folder_missing_its_metrics(tmp_path):
+    from pipeline.runs.report import read_runs
+
+    root = _fake_runs(tmp_path, {("full", 0): 20.0})
+    (root / "full-s0" / "metrics.json").unlink()
+    with pytest.raises(FileNotFoundError, match="full-s0: an ablation run without .*metrics.json"):
+        read_runs(root)
+    empty = tmp_path / "empty"
+    empty.mkdir()
+    with pytest.raises(FileNotFoundError, match="no ablation run folders"):
+        read_runs(empty)
+
+
+def test_pareto_front_is_the_set_no_point_dominates():
+    from pipeline.tracking.figures import pareto_front
+
+    xs = [1.0, 2.0, 3.0, 1.5, float("nan")]
+    ys = [10.0, 12.0, 11.0, 9.0, 20.0]
+    assert pareto_front(xs, ys) == [0, 1]  # (3, 11) is beaten by (2, 12), (1.5, 9) by (1, 10); NaN never
