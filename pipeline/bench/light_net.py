@@ -137,15 +137,19 @@ def hyper_apply(points: int = 65536, scenes: int = 4, repeats: int = 3) -> dict:
 
 
 @torch.no_grad()
-def thresholds(model_path: Path, data_dir: str, values=(0.0, 0.25, 0.5, 0.9)) -> list[dict]:
-    """Re-render PSNR, light errors and out-of-view query fraction of the trained model per threshold."""
+def thresholds(model_path: Path, data_dir: str, material_path: Path, values=(0.0, 0.25, 0.5, 0.9)) -> list[dict]:
+    """Re-render PSNR, light errors and out-of-view query fraction of the trained model per threshold, on
+    the G-buffers it was trained on: the frozen MaterialNet's predictions (`material_path`), as in
+    `train_lighting` with gbuffers=predicted."""
     from pipeline.data.datamodules import InteriorVerseDataModule
     from pipeline.models.export import read_export
+    from pipeline.models.material_net import load_material_export
 
     blob = read_export(model_path, "invrender.light_net/1")
+    _, material = load_material_export(material_path)
     dm = InteriorVerseDataModule(data_dir, batch_size=4, lighting=True)
     dm.setup("test")
-    return [_threshold_row(t, blob, dm) for t in tqdm(values, desc="out-of-view threshold")]
+    return [_threshold_row(t, blob, material, dm) for t in tqdm(values, desc="out-of-view threshold")]
 
 
 class _CountingLightNet(LightNet):
@@ -160,12 +164,12 @@ class _CountingLightNet(LightNet):
         return out
 
 
-def _threshold_row(t: float, blob: dict, dm) -> dict:
+def _threshold_row(t: float, blob: dict, material: dict, dm) -> dict:
     from pipeline.systems.lighting import LightingSystem
 
     cfg = {**blob["light_net"], "mode": "mixed", "out_threshold": t}
     render = {"estimator": "importance", "spp": 8, "eval_spp": 16, "seed": 0}  # conf/render/importance.yaml
-    system = LightingSystem(light_net=cfg, material=None, render=render, gbuffers="ground_truth")
+    system = LightingSystem(light_net=cfg, material=material, render=render, gbuffers="predicted")
     system.net = _CountingLightNet(**cfg)
     system.net.load_state_dict(blob["state_dict"])
     system.eval()
@@ -181,15 +185,20 @@ def run(
     model_path="outputs/train_lighting/model.pt",
     data_dir="outputs/preprocess",
     hyper_points: int = 65536,
+    material_path="outputs/train_material/model.pt",
 ) -> dict:
     report = {"threads": torch.get_num_threads(), "sizes": SMALL, "speed": speed(resolutions, repeats)}
     report["hyper_apply"] = hyper_apply(hyper_points, repeats=repeats)
-    if Path(model_path).is_file():
-        report["thresholds"] = thresholds(Path(model_path), data_dir)
+    missing = [str(p) for p in (model_path, material_path) if not Path(p).is_file()]
+    if not missing:
+        report["thresholds"] = thresholds(Path(model_path), data_dir, Path(material_path))
         report["thresholds_model"] = str(model_path)
+        report["thresholds_gbuffers"] = f"predicted by {material_path}"
     else:
         report["thresholds"] = []
-        report["thresholds_note"] = f"{model_path} not found: run `dvc repro train_lighting` for the threshold sweep"
+        report["thresholds_note"] = (
+            f"{', '.join(missing)} not found: run `dvc repro train_lighting` for the threshold sweep"
+        )
     return report
 
 
@@ -218,8 +227,9 @@ def main(argv=None) -> None:
     p.add_argument("--repeats", type=int, default=3)
     p.add_argument("--model", default="outputs/train_lighting/model.pt")
     p.add_argument("--data-dir", default="outputs/preprocess")
+    p.add_argument("--material", default="outputs/train_material/model.pt", help="MaterialNet export (G-buffers)")
     a = p.parse_args(argv)
-    report = run(repeats=a.repeats, model_path=a.model, data_dir=a.data_dir)
+    report = run(repeats=a.repeats, model_path=a.model, data_dir=a.data_dir, material_path=a.material)
     print(publish("light_net", report, plot))
 
 
