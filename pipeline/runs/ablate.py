@@ -239,6 +239,9 @@ def run(cfg: DictConfig) -> dict[str, float]:
         if why is not None:
             mlflow.set_tag("unavailable", why)
             (report / "preset.json").write_text(json.dumps({**preset, "seed": int(cfg.seed), "unavailable": why}))
+            out = Path(cfg.out_dir)  # the stage's out exists and says why it holds no model
+            out.mkdir(parents=True, exist_ok=True)
+            (out / "UNAVAILABLE.txt").write_text(f"ablation={cfg.preset} did not run: {why}\n")
             publish(report, {"available": 0.0}, artifacts=(report / "preset.json",))
             return {"available": 0.0}
         t0 = time.perf_counter()
