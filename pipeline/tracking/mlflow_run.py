@@ -166,6 +166,7 @@ def stage_run(
         "git_sha": git_sha(project_root()),
         "dvc_exp_name": os.environ.get("DVC_EXP_NAME", ""),
         "overrides": " ".join(overrides)[:5000],
+        "process_id": str(os.getpid()),  # which worker ran it, in parallel sweeps
         **(tags or {}),
     }
     params = _flatten(OmegaConf.to_container(cfg, resolve=True))

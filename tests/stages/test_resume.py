@@ -7,6 +7,7 @@ import os
 import signal
 import subprocess
 import sys
+import uuid
 
 import mlflow
 import pytest
@@ -73,7 +74,7 @@ def killed(micro_shards, tmp_path_factory):
     def kill(stage):
         if stage not in done:
             tmp = tmp_path_factory.mktemp(f"killed_{stage}")
-            experiment = f"test-resume-{stage}-{tmp.name}"  # unique even if two workers both run it
+            experiment = f"test-resume-{stage}-{uuid.uuid4().hex[:8]}"  # unique even if two workers run it
             overrides = _overrides(stage, micro_shards, tmp, experiment)
             proc = subprocess.run(
                 [

@@ -74,10 +74,12 @@ def test_basic_launcher_jobs_write_their_own_folders(micro_root, tmp_path):
     log = _sweep(tmp_path, micro_root, "sweep-basic")
     _, children = _check_sweep(tmp_path, "sweep-basic", log)
     assert not _overlapping(children)  # one after another, in the launcher's process
+    assert len({r.data.tags["process_id"] for r in children}) == 1
 
 
 def test_joblib_launcher_runs_four_jobs_two_at_a_time(micro_root, tmp_path):
     log = _sweep(tmp_path, micro_root, "sweep-joblib", "hydra/launcher=joblib", "hydra.launcher.n_jobs=2")
     parent, children = _check_sweep(tmp_path, "sweep-joblib", log)
     assert parent.data.tags["launcher"] == "JoblibLauncher"
-    assert _overlapping(children)  # two jobs ran at the same time
+    # two worker processes ran them (start-up can stagger them, so they need not overlap in time)
+    assert len({r.data.tags["process_id"] for r in children}) == 2
