@@ -39,6 +39,26 @@ def wait_for_http(url: str, seconds: float, what: str) -> None:
     pytest.fail(f"{what} did not answer within {seconds:.0f} s")
 
 
+def run_stage_process(stage: str, args: list[str], cwd: Path) -> str:
+    """`python -m stages.<stage> *args` in its own process, run from `cwd` with this checkout importable;
+    fails the test with the tail of its output unless it succeeds. Returns stdout + stderr."""
+    import subprocess
+    import sys
+
+    out = subprocess.run(
+        [sys.executable, "-m", f"stages.{stage}", *args],
+        cwd=cwd,
+        env={**os.environ, "PYTHONPATH": str(ROOT)},
+        capture_output=True,
+        text=True,
+        timeout=600,
+    )
+    log = out.stdout + out.stderr
+    if out.returncode != 0:
+        pytest.fail(f"stages.{stage} {' '.join(args)} failed ({out.returncode}):\n{log[-4000:]}")
+    return log
+
+
 def compose_cfg(name: str, overrides: list[str] | None = None):
     """Compose `conf/<name>.yaml` with overrides (Hydra Compose API, no working-dir change)."""
     with initialize_config_dir(config_dir=str(CONF), version_base="1.3"):

@@ -6,15 +6,13 @@ from __future__ import annotations
 
 import json
 import os
-import subprocess
-import sys
 from pathlib import Path
 
 import mlflow
 import pytest
 import torch
 
-from tests.conftest import CONF, ROOT, compose_cfg
+from tests.conftest import CONF, ROOT, compose_cfg, run_stage_process
 
 PRESETS = sorted(p.stem for p in (CONF / "ablation").glob("*.yaml"))
 
@@ -108,17 +106,12 @@ def test_ablate_stage_and_hydra_multirun_give_the_same_metrics(pipeline_outputs,
     assert metrics["health/diverged"] == 0.0 and metrics["health/logged_train_losses"] > 0
     assert len(json.loads((folder / "worst_views.json").read_text())) >= 1
 
-    out = subprocess.run(
-        [sys.executable, "-m", "stages.train_lighting", "-m", "ablation=full", "seed=0", "profile=micro"]
-        + [f"paths.outputs={pipeline_outputs}", "progress=false", "hydra.sweep.dir=sweep"]
-        + ["tracking.experiment=test-ablate-multirun"],
-        cwd=tmp_path,
-        env={**os.environ, "PYTHONPATH": str(ROOT)},
-        capture_output=True,
-        text=True,
-        timeout=600,
+    run_stage_process(
+        "train_lighting",
+        ["-m", "ablation=full", "seed=0", "profile=micro", f"paths.outputs={pipeline_outputs}", "progress=false"]
+        + ["hydra.sweep.dir=sweep", "tracking.experiment=test-ablate-multirun"],
+        tmp_path,
     )
-    assert out.returncode == 0, (out.stdout + out.stderr)[-4000:]
     # the job's report under its own sweep folder (paths.reports is relative)
     job = json.loads((tmp_path / "sweep" / "0" / "reports" / "train_lighting" / "metrics.json").read_text())
     job = {k.removeprefix("mixed/"): v for k, v in job.items()}

@@ -5,8 +5,6 @@ composes with the documented submission parameters (no SLURM here)."""
 from __future__ import annotations
 
 import os
-import subprocess
-import sys
 
 import mlflow
 import numpy as np
@@ -14,7 +12,7 @@ import pytest
 import torch
 from omegaconf import OmegaConf
 
-from tests.conftest import ROOT, compose_cfg
+from tests.conftest import ROOT, compose_cfg, run_stage_process
 
 
 @pytest.mark.slow
@@ -22,18 +20,17 @@ def test_ddp_cpu_trains_on_two_processes_and_rank_zero_alone_tracks(micro_shards
     from pipeline.models.material_net import load_material_export
 
     experiment = "test-ddp-cpu"
-    out = subprocess.run(
-        [sys.executable, "-m", "stages.train_material", "trainer=ddp_cpu", "profile=micro", "progress=false"]
-        + [f"data_dir={micro_shards}", "paths.outputs=outputs", "paths.reports=reports", "system_metrics=false"]
-        + ["trainer.max_epochs=2", f"tracking.experiment={experiment}"],
-        cwd=tmp_path,
-        env={**os.environ, "PYTHONPATH": str(ROOT)},
-        capture_output=True,
-        text=True,
-        timeout=600,
+    log = run_stage_process(
+        "train_material",
+        ["trainer=ddp_cpu", "profile=micro", "progress=false", f"data_dir={micro_shards}", "paths.outputs=outputs"]
+        + [
+            "paths.reports=reports",
+            "system_metrics=false",
+            "trainer.max_epochs=2",
+            f"tracking.experiment={experiment}",
+        ],
+        tmp_path,
     )
-    log = out.stdout + out.stderr
-    assert out.returncode == 0, log[-4000:]
     assert "Starting with 2 processes" in log and "distributed_backend=gloo" in log
 
     [run] = mlflow.search_runs(experiment_names=[experiment], output_format="list")  # rank 1 opened none

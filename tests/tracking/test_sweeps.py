@@ -5,32 +5,28 @@ named and tagged by their overrides, and nest under one MLflow parent run; with 
 from __future__ import annotations
 
 import json
-import os
-import subprocess
-import sys
 
 import mlflow
 import pytest
 
-from tests.conftest import ROOT
+from tests.conftest import run_stage_process
 
 pytestmark = pytest.mark.slow
 
 
 def _sweep(tmp_path, micro_root, experiment, *extra):
-    out = subprocess.run(
-        [sys.executable, "-m", "stages.preprocess", "-m", "profile=micro", "progress=false"]
-        + [f"data.interiorverse.generated_root={micro_root}", f"tracking.experiment={experiment}"]
-        + ["hydra.sweep.dir=sweep", "preprocess.shard_size=2,4", "seed=0,1", *extra],
-        cwd=tmp_path,
-        env={**os.environ, "PYTHONPATH": str(ROOT)},
-        capture_output=True,
-        text=True,
-        timeout=600,
+    return run_stage_process(
+        "preprocess",
+        ["-m", "profile=micro", "progress=false", f"data.interiorverse.generated_root={micro_root}"]
+        + [
+            f"tracking.experiment={experiment}",
+            "hydra.sweep.dir=sweep",
+            "preprocess.shard_size=2,4",
+            "seed=0,1",
+            *extra,
+        ],
+        tmp_path,
     )
-    log = out.stdout + out.stderr
-    assert out.returncode == 0, log[-4000:]
-    return log
 
 
 def _check_sweep(tmp_path, experiment, log):
