@@ -5,6 +5,11 @@ columns over the azimuth phi in [0, 2 pi) from the tangent of `frames.orthonorma
 bitangent; texel (a, b) is centred at theta = (a + .5)/rows * pi/2, phi = (b + .5)/cols * 2 pi.
 Sphere maps (free points): rows over theta in [0, pi] from +y (up), columns over phi from -z (forward)
 towards +x. Directions point where the light comes from (DESIGN.md section 3).
+
+A texel's value is the mean radiance over its solid angle (as a box-filtered environment map), not the
+radiance along its centre ray: `texel_directions` draws directions uniformly in solid angle inside
+given texels (uniform in cos theta and phi over the texel's band), for the ground truth's renderer and
+for every predictor that is scored against it.
 """
 
 from __future__ import annotations
@@ -14,7 +19,7 @@ import math
 import numpy as np
 import torch
 
-from pipeline.ops.frames import orthonormal_basis, to_local
+from pipeline.ops.frames import from_local, orthonormal_basis, to_local
 
 
 def hemisphere_directions(normals: np.ndarray, rows: int, cols: int) -> np.ndarray:
@@ -37,6 +42,52 @@ def sphere_directions(rows: int, cols: int) -> np.ndarray:
     phi = (np.arange(cols) + 0.5) / cols * (2 * math.pi)
     th, ph = np.meshgrid(theta, phi, indexing="ij")
     return np.stack([np.sin(th) * np.sin(ph), np.cos(th), -np.sin(th) * np.cos(ph)], -1)
+
+
+def stratified_square(
+    k: int, count: int = 1, generator: torch.Generator | None = None, dtype=torch.float64
+) -> torch.Tensor:
+    """(count, k*k, 2) points of [0, 1)^2, one per cell of a k x k grid: jittered uniformly inside its
+    cell by `generator` (independently for each of `count` sets), or the cell centres when generator is
+    None (deterministic)."""
+    if k < 1:
+        raise ValueError(f"stratified_square: k={k} must be >= 1")
+    i, j = torch.meshgrid(torch.arange(k, dtype=dtype), torch.arange(k, dtype=dtype), indexing="ij")
+    cells = torch.stack([i.reshape(-1), j.reshape(-1)], -1).expand(count, -1, -1)
+    if generator is None:
+        return (cells + 0.5) / k
+    return (cells + torch.rand(count, k * k, 2, generator=generator, dtype=dtype)) / k
+
+
+def texel_directions(
+    row: torch.Tensor, col: torch.Tensor, u: torch.Tensor, rows: int, cols: int, normal: torch.Tensor | None = None
+) -> torch.Tensor:
+    """Directions uniform in solid angle inside texels of hemisphere maps (`normal` (M, 3) given) or
+    sphere maps (normal None), laid out as `hemisphere_directions` / `sphere_directions`.
+
+    row, col (M,) long texel indices; u (M, S, 2) or (S, 2) points of [0, 1)^2 (u[..., 0] moves over the
+    texel's cos(theta) band, u[..., 1] over its azimuth). Returns (M, S, 3) unit directions; u = (.5, .5)
+    gives the direction at the texel's solid-angle centre (its cos-theta midpoint, not its theta midpoint)."""
+    extent = math.pi / 2 if normal is not None else math.pi
+    dtype = u.dtype
+    u = u.expand(len(row), *u.shape[-2:]) if u.ndim == 2 else u
+    r = row.to(dtype)[:, None]
+    c0, c1 = torch.cos(r / rows * extent), torch.cos((r + 1) / rows * extent)
+    ct = c0 + (c1 - c0) * u[..., 0]
+    st = torch.sqrt((1 - ct * ct).clamp(min=0))
+    phi = (col.to(dtype)[:, None] + u[..., 1]) / cols * (2 * math.pi)
+    if normal is None:
+        return torch.stack([st * torch.sin(phi), ct, -st * torch.cos(phi)], -1)
+    n = normal.to(dtype)[:, None, :].expand(-1, u.shape[1], -1)
+    t, bt = orthonormal_basis(n)
+    return from_local(torch.stack([st * torch.cos(phi), st * torch.sin(phi), ct], -1), t, bt, n)
+
+
+def texel_solid_angles(rows: int, cols: int, hemisphere: bool) -> np.ndarray:
+    """(rows,) solid angle of one texel in each row, steradians (every column of a row is equal)."""
+    extent = math.pi / 2 if hemisphere else math.pi
+    edges = np.cos(np.arange(rows + 1) / rows * extent)
+    return (edges[:-1] - edges[1:]) * (2 * math.pi / cols)
 
 
 def hemisphere_lookup(

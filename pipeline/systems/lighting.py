@@ -121,20 +121,30 @@ class LightingSystem(L.LightningModule):
         return radiance
 
     def query(self, ctx, gb, fov, rays, generator) -> dict[str, torch.Tensor]:
-        """LightNet at every ray of a `ProbeRays` in chunks: radiance (M, 3), hit (M,), u (M,)."""
+        """LightNet's texel values at the M rays of a `ProbeRays`, in chunks: radiance (M, 3) the mean over
+        each texel's S directions; hit (M,) whether most of them hit in SSRT; u (M,) their mean confidence."""
+        M, S = rays.direction.shape[:2]
+        origin = rays.origin.repeat_interleave(S, 0)
+        image = rays.image.repeat_interleave(S, 0)
+        direction = rays.direction.reshape(-1, 3)
         chunks = [
             self.net(
                 ctx,
                 gb,
                 fov,
-                rays.origin[i : i + QUERY_CHUNK],
-                rays.direction[i : i + QUERY_CHUNK],
-                rays.image[i : i + QUERY_CHUNK],
+                origin[i : i + QUERY_CHUNK],
+                direction[i : i + QUERY_CHUNK],
+                image[i : i + QUERY_CHUNK],
                 generator,
             )
-            for i in range(0, len(rays), QUERY_CHUNK)
+            for i in range(0, len(direction), QUERY_CHUNK)
         ]
-        return {k: torch.cat([c[k] for c in chunks]) for k in ("radiance", "hit", "u")}
+        out = {k: torch.cat([c[k] for c in chunks]) for k in ("radiance", "hit", "u")}
+        return {
+            "radiance": out["radiance"].view(M, S, 3).mean(1),
+            "hit": out["hit"].view(M, S).float().mean(1) > 0.5,
+            "u": out["u"].view(M, S).mean(1),
+        }
 
     def sample_pixels(self, mask: torch.Tensor, per_image: int) -> torch.Tensor:
         """Random valid flat pixel indices, per_image from each image (fewer if it has fewer)."""
@@ -161,7 +171,7 @@ class LightingSystem(L.LightningModule):
         rays = ProbeRays.cat([p for p in parts if p is not None])
         if rays is not None and self.light_weight > 0:
             rays = rays.to(self.device)
-            pred = self.net(ctx, gb, fov, rays.origin, rays.direction, rays.image, self.generator)["radiance"]
+            pred = self.query(ctx, gb, fov, rays, self.generator)["radiance"]
             losses["light"] = hdr_relative_loss(pred, rays.radiance, scale[rays.image])
         pix = self.sample_pixels(batch["mask"][:, 0], self.pixels)
         rgb, b = self.train_layer.render_pixels(

@@ -6,7 +6,7 @@ same views, probe texels, pixels and sample directions as the model.
   mean: the constant light at the photo's exposure (what a network ignoring the content still gets right).
 - `gt_probes`: the ground-truth G-buffers re-rendered under the ground-truth surface probes (bilinear
   between texel centres) at the probe pixels, beside the model at the same pixels. Not an upper bound
-  here: the probes are coarse (8x16 texels) and noisy (32 spp), see README.
+  here: the probes are coarse (8x16 texels, solid-angle averages read bilinearly), see README.
 - `probe_mean_oracle` / `probe_median_oracle`: each probe's own ground-truth mean / median radiance over
   its texels, predicted for every texel. They know all but where in the probe the light comes from; a
   model at the light loss's fixed point (the conditional mean) that cannot place sources within a probe

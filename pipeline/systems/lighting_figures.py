@@ -12,6 +12,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from pipeline.data.lighting import ProbeRays, probe_rays
 from pipeline.metrics.image import psnr_tonemapped
 from pipeline.ops.camera import grid_pixels, pixel_values
 from pipeline.systems.lighting import LightingSystem
@@ -93,20 +94,15 @@ def probe_envmaps(system: LightingSystem, batch: dict, surface: int = 2, free: i
         inp = batch["im"][v].permute(1, 2, 0).float().cpu().numpy()
         for kind, k in (("surf", surface), ("free", free)):
             probes = light.kind(kind)
+            rays = probe_rays([light], kind)  # every texel of every probe, texel-averaged directions
+            R, C = probes.radiance.shape[1:3]
             for i in spread_indices(len(probes), k):
-                d = probes.directions[i]  # (R, C, 3)
-                o = probes.origins()[i]
+                sel = slice(i * R * C, (i + 1) * R * C)
+                one = ProbeRays(
+                    rays.origin[sel], rays.direction[sel], rays.radiance[sel], rays.image[sel] + v, rays.pixel[sel]
+                )
+                pred = system.query(ctx, gb, fov, one.to(system.device), system.eval_generator())["radiance"]
                 pixel = None if probes.pixel is None else tuple(int(x) for x in probes.pixel[i])
-                n = d.shape[0] * d.shape[1]
-                pred = system.net(
-                    ctx,
-                    gb,
-                    fov,
-                    o.expand(n, 3),
-                    d.reshape(-1, 3),
-                    torch.full((n,), v, dtype=torch.long),
-                    system.eval_generator(),
-                )["radiance"]
                 label = f"{batch['id'][v]}\n{'surface' if kind == 'surf' else 'free point'} {i}"
                 rows.append(
                     {
@@ -114,7 +110,7 @@ def probe_envmaps(system: LightingSystem, batch: dict, surface: int = 2, free: i
                         "input": inp,
                         "pixel": pixel,
                         "gt": probes.radiance[i].numpy().astype(np.float32),
-                        "pred": pred.reshape(d.shape).cpu().numpy(),
+                        "pred": pred.reshape(R, C, 3).cpu().numpy(),
                     }
                 )
     return rows

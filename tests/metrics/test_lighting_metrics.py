@@ -139,7 +139,16 @@ def test_probe_rays_take_every_texel_in_order_or_a_seeded_sample():
     assert probe_rays([light], "free") is None
     a = probe_rays([light], "surf", 1, 2, torch.Generator().manual_seed(3))
     b = probe_rays([light], "surf", 1, 2, torch.Generator().manual_seed(3))
-    assert len(a) == 2 and torch.equal(a.radiance, b.radiance)
+    assert len(a) == 2 and torch.equal(a.radiance, b.radiance) and torch.equal(a.direction, b.direction)
+    # a texel is predicted as the mean over directions inside it: 2 x 2 grid centres in evaluation, one
+    # random direction per texel in training; all on the probe's hemisphere (normal +z here)
+    assert rays.direction.shape == (16, 4, 3) and a.direction.shape == (2, 1, 3)
+    for d in (rays.direction, a.direction):
+        torch.testing.assert_close(d.norm(dim=-1), torch.ones(d.shape[:2]))
+        assert bool((d[..., 2] >= 0).all())
+    # texel (0, 0) of a 2 x 2 hemisphere map: theta in [0, pi/4], phi in [0, pi)
+    first = rays.direction[0]
+    assert bool((first[:, 2] >= torch.cos(torch.tensor(torch.pi / 4)) - 1e-6).all() and (first[:, 1] >= -1e-6).all())
 
 
 def test_ssim_tonemapped_is_one_on_itself_exposure_invariant_and_masked():

@@ -7,14 +7,16 @@ depth is z-depth in millimetres (inf on misses), normals are unit view-space vec
 from __future__ import annotations
 
 import contextlib
+import math
 import time
 from dataclasses import dataclass
 
 import numpy as np
+import torch
 
 from pipeline.data.synth import mitsuba_backend as mb
 from pipeline.data.synth.scene import Camera
-from pipeline.ops.envmap import hemisphere_directions, sphere_directions
+from pipeline.ops.envmap import hemisphere_directions, sphere_directions, stratified_square, texel_directions
 
 PROBE_OFFSET_M = 2e-3  # probe rays start this far along the normal, clear of the surface they sit on
 
@@ -27,7 +29,20 @@ class LightingConfig:
     hemi_size: tuple[int, int] = (8, 16)  # (theta rows over [0, pi/2], phi columns over [0, 2 pi))
     free_points: int = 4
     sphere_size: tuple[int, int] = (16, 32)  # (theta rows over [0, pi], phi columns)
-    spp: int = 32
+    spp: int = 64  # paths per texel, each along its own direction: a k x k stratified grid over the texel
+
+    def __post_init__(self):
+        k = math.isqrt(int(self.spp))
+        if self.spp < 4 or k * k != self.spp or k % 2:
+            raise ValueError(
+                f"synth.lighting.spp={self.spp}: must be the square of an even number (4, 16, 64, 144, 256: "
+                "k x k directions stratified over each texel, paired for the standard error)"
+            )
+
+    @property
+    def strata(self) -> int:
+        """k: each texel is sampled on a k x k grid of its (cos theta, phi) rectangle."""
+        return math.isqrt(int(self.spp))
 
 
 def gbuffer(scene, camera: Camera, width: int, height: int) -> dict[str, np.ndarray]:
@@ -84,17 +99,32 @@ def lighting_probes(
     free_pos = dirs_view.reshape(-1, 3)[picks] * dist[:, None]
     sphere = np.broadcast_to(sphere_directions(*cfg.sphere_size), (len(picks), *cfg.sphere_size, 3))
 
-    def query(pos_view, dirs_view_, offset_normals, key):
-        n_dir = dirs_view_.shape[1] * dirs_view_.shape[2]
-        o_view = pos_view + (offset_normals * PROBE_OFFSET_M if offset_normals is not None else 0.0)
-        o = np.repeat(o_view @ rot.T + origin, n_dir, axis=0)
-        d = dirs_view_.reshape(-1, 3) @ rot.T
-        mean, se = mb.radiance(scene, o, d, cfg.spp, seed=seed * 2 + key)
-        shape = (*dirs_view_.shape[:3], 3)
-        return mean.reshape(shape).astype(np.float32), se.reshape(shape).astype(np.float32)
+    def query(pos_view, size, normals, key):
+        """Texel averages (P, rows, cols, 3) and their standard errors for probes at pos_view (P, 3)."""
+        rows, cols = size
+        texels, k = rows * cols, cfg.strata
+        gen = torch.Generator().manual_seed(int(seed) * 2 + key)  # the directions' jitter
+        mean = np.zeros((len(pos_view), rows, cols, 3), np.float32)
+        se = np.zeros_like(mean)
+        per_chunk = max(1, (1 << 20) // (texels * k * k))  # probes per batch of rays
+        for c, start in enumerate(range(0, len(pos_view), per_chunk)):
+            sl = slice(start, min(len(pos_view), start + per_chunk))
+            n = sl.stop - sl.start
+            row = torch.arange(rows).repeat_interleave(cols).repeat(n)
+            col = torch.arange(cols).repeat(rows * n)
+            u = stratified_square(k, n * texels, gen)
+            nrm = None if normals is None else torch.from_numpy(normals[sl]).repeat_interleave(texels, 0)
+            d_view = texel_directions(row, col, u, rows, cols, nrm).numpy().reshape(-1, 3)
+            o_view = pos_view[sl] + (normals[sl] * PROBE_OFFSET_M if normals is not None else 0.0)
+            o = np.repeat(o_view @ rot.T + origin, texels * k * k, axis=0)
+            L, _ = mb.radiance(scene, o, d_view @ rot.T, 1, seed=(seed * 2 + key) * 4099 + c)
+            L = L.reshape(n, rows, cols, k * k, 3)
+            mean[sl] = L.mean(3)
+            se[sl] = stratified_stderr(L.reshape(n, rows, cols, k, k, 3))
+        return mean, se
 
-    surf_L, surf_se = query(surf_pos, hemi, surf_n, 0)
-    free_L, free_se = query(free_pos, sphere, None, 1)
+    surf_L, surf_se = query(surf_pos, cfg.hemi_size, surf_n, 0)
+    free_L, free_se = query(free_pos, cfg.sphere_size, None, 1)
     return {
         "surf_pixel": pix.astype(np.int32),
         "surf_position": surf_pos.astype(np.float32),
@@ -109,6 +139,19 @@ def lighting_probes(
         "probe_offset_m": np.float32(PROBE_OFFSET_M),
         "spp": np.int32(cfg.spp),
     }
+
+
+def stratified_stderr(samples: np.ndarray) -> np.ndarray:
+    """Standard error of the mean of one sample per cell of a k x k stratified grid, samples (..., k, k, C)
+    with k even -> (..., C). Neighbouring cells are collapsed into pairs: with N = k^2 cells,
+    Var(mean) ~ sum over pairs of (a - b)^2 / N^2, which is unbiased up to the (small, non-negative)
+    squared difference of the two cells' own means; the plain sample spread would also count the
+    variation between cells that stratification removes, overstating the error several-fold."""
+    k = samples.shape[-2]
+    if k % 2:
+        raise ValueError(f"stratified_stderr: need an even grid, got {k} x {k} (synth.lighting.spp)")
+    diff = samples[..., 0::2, :] - samples[..., 1::2, :]  # (..., k, k/2, C)
+    return np.sqrt((diff**2).sum((-3, -2)) / k**4)
 
 
 def camera_is_usable(scene, camera: Camera, min_valid: float = 0.6, min_median_depth_m: float = 1.0) -> bool:
