@@ -3,7 +3,8 @@ query threshold saves.
 
 1. Queries per second of the local branch, the out-of-view branch and each mode (SSRT included) on the
    analytic box room with random G-buffers, and the full-frame re-render time (MC layer, 16 spp, every
-   valid pixel) at 160x120 and 320x240.
+   valid pixel) at 160x120 and 320x240 per setting (`RERENDER_SETTINGS`: unchunked branches, the default,
+   a compiled SSRT kernel, out-of-view thresholds), side by side on the same scene and samples.
 2. With the trained model (outputs/train_lighting/model.pt, when present) on the test views: re-render
    PSNR, light errors and the fraction of out-of-view queries for several thresholds (0 = the paper's
    evaluate-everything).
@@ -91,16 +92,84 @@ def _mode_row(mode: str, H: int, W: int, repeats: int) -> dict:
     )
     row["local_queries_per_second"] = len(h) / t_local
     row["out_of_view_queries_per_second"] = len(o) / t_out
-    # full-frame re-render: every valid pixel, 16 spp through the project's render layer
-    mask = gb["depth"] > 0
-    pixels = torch.nonzero(mask.reshape(-1)).squeeze(-1)
-    layer = MCRenderLayer("importance", spp=16)
-    gen = torch.Generator().manual_seed(0)
-    t0 = time.perf_counter()
-    layer.render_pixels(gb, fov, pixels, lambda k, o, d, b: net(ctx, gb, fov, o, d, b)["radiance"], gen)
-    row["rerender_seconds_16spp"] = time.perf_counter() - t0
-    row["rerender_pixels"] = len(pixels)
     return row
+
+
+# Full-frame re-render settings, timed side by side: `unchunked` runs each branch over all rays at once
+# (as before the branches were chunked), `default` is what the stages run.
+RERENDER_SETTINGS = (
+    {"name": "unchunked", "chunked": False},
+    {"name": "default"},
+    {"name": "compiled_ssrt", "ssrt_compiled": True},
+    {"name": "threshold_0.5", "out_threshold": 0.5},
+    {"name": "threshold_0.9", "out_threshold": 0.9},
+    {"name": "compiled_ssrt+threshold_0.5", "ssrt_compiled": True, "out_threshold": 0.5},
+)
+
+
+@torch.no_grad()
+def rerender(H: int, W: int, repeats: int, spp: int = 16) -> list[dict]:
+    """Seconds of the full-frame re-render (every valid pixel, `spp` importance samples through the MC
+    layer, LightNet `mixed` as the incident radiance) per setting, on the same scene, weights and sample
+    directions. The change each setting makes to the image is its relMSE against `default` (the
+    network is untrained here: the trained model's accuracy per threshold is in `thresholds`); the SSRT
+    compile time is reported apart (once per process)."""
+    from pipeline.models.light_net import branches
+
+    gb, im, fov, _, _ = _scene(H, W)
+    pixels = torch.nonzero((gb["depth"] > 0).reshape(-1)).squeeze(-1)
+    layer = MCRenderLayer("importance", spp=spp)
+    rows, images = [], {}
+    for setting in tqdm(RERENDER_SETTINGS, desc=f"re-render {W}x{H}"):
+        torch.manual_seed(0)
+        net = LightNet(
+            mode="mixed",
+            ssrt_compiled=setting.get("ssrt_compiled", False),
+            out_threshold=setting.get("out_threshold", 0.0),
+            **SMALL,
+        ).eval()
+        ctx = net.encode(im, gb["depth"], fov)
+        counting = {"out": 0, "rays": 0}
+
+        def radiance(k, o, d, b, net=net, ctx=ctx, counting=counting):
+            out = net(ctx, gb, fov, o, d, b)
+            counting["out"] += out["out_queries"]
+            counting["rays"] += len(d)
+            return out["radiance"]
+
+        def render(layer=layer, radiance=radiance):
+            return layer.render_pixels(gb, fov, pixels, radiance, torch.Generator().manual_seed(0))[0]
+
+        chunks = (branches.RAY_CHUNK, branches.POINT_CHUNK)
+        if not setting.get("chunked", True):
+            branches.RAY_CHUNK = branches.POINT_CHUNK = 1 << 62
+        try:
+            t0 = time.perf_counter()
+            images[setting["name"]] = render()  # warm-up (and the compile, where asked)
+            first = time.perf_counter() - t0
+            counting.update(out=0, rays=0)
+            seconds = median_seconds(render, repeats, warmup=0)
+        finally:
+            branches.RAY_CHUNK, branches.POINT_CHUNK = chunks
+        rows.append(
+            {
+                "height": H,
+                "width": W,
+                "setting": setting["name"],
+                "spp": spp,
+                "pixels": len(pixels),
+                "seconds": seconds,
+                "first_call_seconds": first,
+                "out_of_view_query_fraction": counting["out"] / max(counting["rays"], 1),
+            }
+        )
+    ref = images["default"]
+    for r in rows:
+        img = images[r["setting"]]
+        r["relmse_vs_default"] = float(((img - ref) ** 2 / (ref**2 + 1e-2)).mean())
+        r["max_abs_diff_vs_default"] = float((img - ref).abs().max())
+        r["speedup_vs_unchunked"] = rows[0]["seconds"] / r["seconds"]
+    return rows
 
 
 def _gathered_apply(params, x, scene):
@@ -188,6 +257,7 @@ def run(
     material_path="outputs/train_material/model.pt",
 ) -> dict:
     report = {"threads": torch.get_num_threads(), "sizes": SMALL, "speed": speed(resolutions, repeats)}
+    report["rerender"] = [row for H, W in resolutions for row in rerender(H, W, repeats)]
     report["hyper_apply"] = hyper_apply(hyper_points, repeats=repeats)
     missing = [str(p) for p in (model_path, material_path) if not Path(p).is_file()]
     if not missing:
@@ -203,7 +273,7 @@ def run(
 
 
 def plot(report: dict, path) -> None:
-    fig, axes = plt.subplots(1, 2, figsize=(9, 3.2))
+    fig, axes = plt.subplots(1, 3, figsize=(14, 3.6))
     for H, W in sorted({(r["height"], r["width"]) for r in report["speed"]}):
         rs = [r for r in report["speed"] if r["height"] == H]
         axes[0].bar([f"{r['mode']}\n{W}x{H}" for r in rs], [r["queries_per_second"] / 1e3 for r in rs])
@@ -217,6 +287,22 @@ def plot(report: dict, path) -> None:
             ax.annotate(f"t={r['out_threshold']}", (r["out_of_view_query_fraction"], r["render_psnr"]), fontsize=7)
         ax.set_xlabel("fraction of rays sent to the out-of-view branch")
         ax.set_ylabel("re-render PSNR (dB)")
+    else:
+        axes[1].axis("off")
+        axes[1].text(0.5, 0.5, report.get("thresholds_note", "no threshold sweep"), ha="center", va="center",
+                     wrap=True, fontsize=8)
+    ax = axes[2]
+    rr = report.get("rerender") or []
+    for H, W in sorted({(r["height"], r["width"]) for r in rr}):
+        rs = [r for r in rr if r["height"] == H]
+        ax.plot([r["seconds"] for r in rs], [r["relmse_vs_default"] for r in rs], "o", label=f"{W}x{H}")
+        for r in rs:
+            ax.annotate(r["setting"], (r["seconds"], r["relmse_vs_default"]), fontsize=6, rotation=20)
+    if rr:
+        ax.set_xscale("log")
+        ax.set_xlabel("full-frame re-render, 16 spp (s, median)")
+        ax.set_ylabel("relMSE against default (untrained net)")
+        ax.legend(fontsize=7)
     fig.tight_layout()
     fig.savefig(path, dpi=120)
     plt.close(fig)

@@ -186,3 +186,35 @@ def test_pixel_base_gradients_reach_the_encoder_and_mlp():
     out["radiance"].sum().backward()
     assert net.local.mlp[-1].weight.grad.abs().sum() > 0
     assert net.local.encoder.stages[0][0][0].weight.grad.abs().sum() > 0
+
+
+@pytest.mark.parametrize("interleave", (False, True))
+def test_chunked_queries_equal_one_pass_over_all_rays(monkeypatch, interleave):
+    """Both branches split their rays into cache-sized chunks; with chunks of a few rays (several per image,
+    images interleaved or grouped) radiance and every gradient equal one pass over all rays, in float64."""
+    from pipeline.models.light_net import branches
+
+    torch.manual_seed(0)
+    im, gbuffer, fov, origin, wi, bidx = _scene()
+    if interleave:  # rays of the two images alternate, so every chunk regroups them by image
+        perm = torch.randperm(len(wi), generator=torch.Generator().manual_seed(2))
+        origin, wi, bidx = origin[perm], wi[perm], bidx[perm]
+    gbuffer = {k: v.double() for k, v in gbuffer.items()}
+    net = LightNet(mode="mixed", out_of_view={"samples": 4}).double()
+
+    def run(ray_chunk, point_chunk):
+        monkeypatch.setattr(branches, "RAY_CHUNK", ray_chunk)
+        monkeypatch.setattr(branches, "POINT_CHUNK", point_chunk)
+        net.zero_grad()
+        ctx = net.encode(im.double(), gbuffer["depth"], fov)
+        L = net(ctx, gbuffer, fov, origin.double(), wi.double(), bidx, torch.Generator().manual_seed(1))["radiance"]
+        (L * torch.linspace(0.5, 1.5, 3, dtype=L.dtype)).sum().backward()
+        return L.detach(), {n: p.grad.clone() for n, p in net.named_parameters() if p.grad is not None}
+
+    one_pass, grads = run(1 << 40, 1 << 40)
+    assert len(wi) > 7 * 4
+    chunked, chunk_grads = run(7, 4 * 5)  # 7 rays per local chunk, 5 rays per volume-rendering chunk
+    assert torch.allclose(chunked, one_pass, rtol=1e-12, atol=1e-12)
+    assert grads.keys() == chunk_grads.keys() and len(grads) > 10
+    for name, g in grads.items():
+        assert torch.allclose(chunk_grads[name], g, rtol=1e-10, atol=1e-12), name

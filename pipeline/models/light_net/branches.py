@@ -35,6 +35,10 @@ GBUFFER_GROUPS = (("kd", 3), ("ks", 3), ("normal", 3), ("roughness", 1))  # the 
 ENCODINGS = ("nerf", "rff")
 ACTIVATIONS = ("softplus", "relu")
 BOUNDS = ("box", "sphere")
+# rays per chunk of either branch's query: the (rays [x samples] x width) activations stay a few MB and are
+# reused from cache instead of being freshly paged in for every operation (pipeline.bench.light_net)
+RAY_CHUNK = 8192
+POINT_CHUNK = 1 << 15  # volume samples per chunk of the out-of-view branch (its rays: POINT_CHUNK // samples)
 
 
 def image_scale(im: torch.Tensor) -> torch.Tensor:
@@ -141,15 +145,36 @@ class LocalBranch(nn.Module):
         """feats: encode() output; scale (B,); batch_index (N,); pixel (N, 2) (row, col) hit pixels;
         size (H, W); wi (N, 3); gbuf (N, 10) at the hit; image (B, 3, H, W) the input divided by scale
         (needed with pixel_base) -> radiance (N, 3)."""
+        if len(wi) > RAY_CHUNK:  # cache-sized chunks (see RAY_CHUNK)
+            return torch.cat(
+                [
+                    self.query(
+                        feats,
+                        scale,
+                        *(x[i : i + RAY_CHUNK] for x in (batch_index, pixel)),
+                        size,
+                        wi[i : i + RAY_CHUNK],
+                        gbuf[i : i + RAY_CHUNK],
+                        image,
+                    )
+                    for i in range(0, len(wi), RAY_CHUNK)
+                ]
+            )
         H, W = size
         # pixel centres in grid_sample's [-1, 1] coordinates (align_corners=False)
         gx = (pixel[:, 1].to(wi.dtype) + 0.5) / W * 2 - 1
         gy = (pixel[:, 0].to(wi.dtype) + 0.5) / H * 2 - 1
         grid = torch.stack([gx, gy], -1)
+        images = torch.unique(batch_index).tolist()
         sampled = []
         for f in feats:  # per image: sample that image's rays
+            if len(images) == 1:  # one image: no scatter
+                b = images[0]
+                g = grid.view(1, -1, 1, 2)
+                sampled.append(F.grid_sample(f[b : b + 1], g, mode="bilinear", align_corners=False)[0, :, :, 0].T)
+                continue
             out = f.new_zeros(len(wi), f.shape[1])
-            for b in torch.unique(batch_index).tolist():
+            for b in images:
                 sel = batch_index == b
                 g = grid[sel].view(1, -1, 1, 2)
                 out[sel] = F.grid_sample(f[b : b + 1], g, mode="bilinear", align_corners=False)[0, :, :, 0].T
@@ -231,18 +256,33 @@ class OutOfViewBranch(nn.Module):
             lo, hi = bounds[batch_index, 0], bounds[batch_index, 1]
             t_near, t_far = ray_box(origin, wi, lo, hi)
         edges, mids = stratified_edges(t_near, t_far, self.samples, generator)
-        pts = origin[:, None, :] + mids[..., None] * wi[:, None, :]  # (N, S, 3)
-        if self.bounds == "box":
+        if self.bounds == "box":  # the box maps to [-1, 1]^3
             centre, half = (lo + hi) / 2, ((hi - lo) / 2).clamp(min=1e-3)
-            pts = (pts - centre[:, None]) / half[:, None]  # the box maps to [-1, 1]^3
-        S = self.samples
-        encoded = fourier(pts.reshape(-1, 3), self.frequencies, pi=self.pi_encoding)
-        out = HyperMLP.run_generated(params, encoded, batch_index.repeat_interleave(S)).view(-1, S, 4)
-        sigma = _activate(out[..., 0], self.activation)
-        if self.bounds == "box":
-            sigma = sigma * (S / (t_far - t_near).clamp(min=1e-3))[:, None]  # O(1) optical depth
-        rad, _, left = composite(sigma, _activate(out[..., 1:], self.activation), edges)
+        else:
+            centre, half = torch.zeros_like(origin), torch.ones_like(origin)
+        # density in units of the samples' spacing: O(1) optical depth across the box
+        spacing = self.samples / (t_far - t_near).clamp(min=1e-3) if self.bounds == "box" else None
+        step = max(1, POINT_CHUNK // self.samples)
+        parts = []
+        for i in range(0, len(wi), step):
+            c = slice(i, i + step)
+            pts = origin[c, None, :] + mids[c, :, None] * wi[c, None, :]  # (n, S, 3)
+            pts = (pts - centre[c, None]) / half[c, None]
+            parts.append(self._march(params, pts, edges[c], batch_index[c], None if spacing is None else spacing[c]))
+        rad, left = parts[0] if len(parts) == 1 else (torch.cat(x) for x in zip(*parts, strict=True))
         if self.far is not None:
             far = F.softplus(self.far(torch.cat([feature[batch_index], fourier(wi, self.dir_frequencies)], -1)))
             rad = rad + left[:, None] * far
         return rad * scale[batch_index].unsqueeze(-1)
+
+    def _march(self, params, pts, edges, batch_index, density_scale):
+        """Volume-render one chunk of rays: sample points pts (n, S, 3) (encoded positions' space), segment
+        edges (n, S+1), images batch_index (n,), density_scale (n,) or None -> (radiance (n, 3), transmittance
+        left (n,))."""
+        S = pts.shape[1]
+        encoded = fourier(pts.reshape(-1, 3), self.frequencies, pi=self.pi_encoding)
+        out = HyperMLP.run_generated(params, encoded, batch_index.repeat_interleave(S))
+        out = _activate(out, self.activation).view(-1, S, 4)  # density and radiance share the activation
+        sigma = out[..., 0] if density_scale is None else out[..., 0] * density_scale[:, None]
+        rad, _, left = composite(sigma, out[..., 1:], edges)
+        return rad, left

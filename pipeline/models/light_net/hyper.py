@@ -105,15 +105,22 @@ class HyperMLP(nn.Module):
         memory bound (see pipeline.bench.light_net).
         """
         n_scenes = params[0][0].shape[0]
-        order = torch.argsort(scene, stable=True)
         counts = torch.bincount(scene, minlength=n_scenes).tolist()
+        # points already grouped by scene (one image, or rays in image order) need no permutation
+        grouped = len(scene) < 2 or bool((scene[1:] >= scene[:-1]).all())
+        order = None if grouped else torch.argsort(scene, stable=True)
         groups = []
-        for s, xs in enumerate(torch.split(x[order], counts)):
+        for s, xs in enumerate(torch.split(x if grouped else x[order], counts)):
+            if not len(xs):
+                continue
             for k, (w, b) in enumerate(params):
                 xs = torch.addmm(b[s], xs, w[s].t())
                 if k < len(params) - 1:
                     xs = F.relu(xs)
             groups.append(xs)
+        out = groups[0] if len(groups) == 1 else torch.cat(groups)
+        if grouped:
+            return out
         inverse = torch.empty_like(order)
         inverse[order] = torch.arange(len(order), device=order.device)
-        return torch.cat(groups).index_select(0, inverse)
+        return out.index_select(0, inverse)
