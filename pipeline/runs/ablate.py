@@ -9,7 +9,8 @@ with `ablation=<preset>`), and scored as the main stages score:
   spp over `timing_views` test images, and for the `full` preset the test metrics and seconds at each
   test-time out-of-view threshold (`test_time_thresholds`: the out-of-view branch queried only where
   u >= t);
-- the wall minutes of the training stage (fit, validation and test passes).
+- the wall minutes of the training stage (fit, validation and test passes) and of each scoring step
+  (`timing_`, `test_time_thresholds_`, `insertion_minutes`), and of the whole run (`stage_minutes`).
 
 A preset that needs something absent here (`preset.requires`, e.g. VGG16 weights) reports
 `available: 0` and why, and trains nothing: no pretend version.
@@ -145,13 +146,18 @@ def lighting_extras(cfg: DictConfig, stage_cfg: DictConfig) -> tuple[dict, dict,
     dm = InteriorVerseDataModule(stage_cfg.data_dir, batch_size=int(stage_cfg.batch_size), seed=int(cfg.seed))
     views = list(dm.plain_loader("test", batch_size=1))[: int(cfg.timing_views)]
     base = float(stage_cfg.model.light_net.out_threshold)
+    t0 = time.perf_counter()
     metrics, timings = {}, {"seconds_per_image": seconds_per_image(system, views, base)}
+    timings["timing_minutes"] = (time.perf_counter() - t0) / 60.0
+    t0 = time.perf_counter()
     if str(cfg.preset) == "full":  # the out-of-view branch queried only where SSRT is unsure (u >= t)
         for t in cfg.test_time_thresholds:
             tested = lighting_test(system, dm.plain_loader("test"), float(t))
             metrics.update({f"out_threshold_{float(t):g}/{k}": v for k, v in tested.items()})
             timings[f"out_threshold_{float(t):g}/seconds_per_image"] = seconds_per_image(system, views, float(t))
         system.net.out_threshold = base
+        timings["test_time_thresholds_minutes"] = (time.perf_counter() - t0) / 60.0
+    t0 = time.perf_counter()
     edit_cfg = compose(
         "edit",
         [
@@ -169,6 +175,7 @@ def lighting_extras(cfg: DictConfig, stage_cfg: DictConfig) -> tuple[dict, dict,
     )
     insertion, records = edit.score_rows(edit_cfg, rows, progress=bool(cfg.progress))
     metrics.update({f"edit/{k}": v for k, v in insertion.items()})
+    timings["insertion_minutes"] = (time.perf_counter() - t0) / 60.0
     worst = worst_views(records, int(cfg.worst_views))
     return metrics, timings, worst
 
@@ -227,18 +234,19 @@ def training_health(ablate_run_id: str, metrics: dict[str, float]) -> dict[str, 
 def run(cfg: DictConfig) -> dict[str, float]:
     import mlflow
 
+    started = time.perf_counter()
     report = Path(cfg.report_dir)
     stage_cfg = stage_config(cfg)
     preset = OmegaConf.to_container(stage_cfg.preset, resolve=True)
     stage = preset["stage"]
     tags = {"preset": str(cfg.preset), "seed": str(int(cfg.seed)), "ablation_stage": stage}
     report.mkdir(parents=True, exist_ok=True)
-    (report / "preset.json").write_text(json.dumps({**preset, "seed": int(cfg.seed)}, indent=1))
+    why = unavailable(stage_cfg)
+    described = {**preset, "seed": int(cfg.seed), **({"unavailable": why} if why is not None else {})}
+    (report / "preset.json").write_text(json.dumps(described, indent=1))
     with stage_run("ablate", cfg, tags=tags) as run:
-        why = unavailable(stage_cfg)
         if why is not None:
             mlflow.set_tag("unavailable", why)
-            (report / "preset.json").write_text(json.dumps({**preset, "seed": int(cfg.seed), "unavailable": why}))
             out = Path(cfg.out_dir)  # the stage's out exists and says why it holds no model
             out.mkdir(parents=True, exist_ok=True)
             (out / "UNAVAILABLE.txt").write_text(f"ablation={cfg.preset} did not run: {why}\n")
@@ -258,5 +266,6 @@ def run(cfg: DictConfig) -> dict[str, float]:
             (report / "worst_views.json").write_text(json.dumps(worst, indent=1))
             artifacts.append(report / "worst_views.json")
         metrics.update(training_health(run.info.run_id, metrics))
+        timings["stage_minutes"] = (time.perf_counter() - started) / 60.0  # from the start of run(): imports excluded
         publish(report, metrics, artifacts=tuple(artifacts), timings=timings)
     return metrics

@@ -101,6 +101,8 @@ def test_ablate_stage_and_hydra_multirun_give_the_same_metrics(pipeline_outputs,
     assert json.loads((folder / "metrics.json").read_text()) == pytest.approx(metrics)
     timings = json.loads((folder / "timings.json").read_text())
     assert timings["seconds_per_image"] > 0 and timings["train_minutes"] > 0
+    phases = ("train_minutes", "timing_minutes", "test_time_thresholds_minutes", "insertion_minutes")
+    assert all(timings[k] > 0 for k in phases) and sum(timings[k] for k in phases) <= timings["stage_minutes"]
     assert {"out_threshold_0.5/seconds_per_image", "out_threshold_0.9/seconds_per_image"} <= set(timings)
     assert "edit/insert/all/lightnet/psnr" in metrics and "out_threshold_0.9/test/render_psnr" in metrics
     assert metrics["health/diverged"] == 0.0 and metrics["health/logged_train_losses"] > 0
