@@ -289,8 +289,15 @@ def plot(report: dict, path) -> None:
         ax.set_ylabel("re-render PSNR (dB)")
     else:
         axes[1].axis("off")
-        axes[1].text(0.5, 0.5, report.get("thresholds_note", "no threshold sweep"), ha="center", va="center",
-                     wrap=True, fontsize=8)
+        axes[1].text(
+            0.5,
+            0.5,
+            report.get("thresholds_note", "no threshold sweep"),
+            ha="center",
+            va="center",
+            wrap=True,
+            fontsize=8,
+        )
     ax = axes[2]
     rr = report.get("rerender") or []
     for H, W in sorted({(r["height"], r["width"]) for r in rr}):

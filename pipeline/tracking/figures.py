@@ -10,6 +10,7 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 import torch  # noqa: E402
+from matplotlib.ticker import FuncFormatter  # noqa: E402
 
 from pipeline.data.synth.figures import tonemap  # noqa: E402
 
@@ -229,11 +230,43 @@ def pareto_front(xs: list[float], ys: list[float]) -> list[int]:
     return sorted(front, key=lambda i: xs[i])
 
 
+def _label_points(ax, labelled: list[tuple[str, float, float]], fontsize: float = 7) -> None:
+    """Annotate each (label, x, y) beside its dot; a label that would overlap one already placed moves to
+    the nearest free text line (down, then up), and one past the axes' right edge goes left of its dot, so
+    points close in speed and accuracy stay readable. Positions in display pixels; a thin line joins a
+    moved label to its dot."""
+    ax.figure.canvas.draw()  # fix the limits and scales so data -> pixel transforms are final
+    to_points = 72 / ax.figure.dpi
+    line = fontsize / to_points * 1.25
+    placed: list[tuple[float, float, float]] = []  # (x0, x1, y) pixel extents of placed labels
+    for label, x, y in sorted(labelled, key=lambda t: -t[2]):
+        px, py = ax.transData.transform((x, y))
+        width = 0.6 * fontsize / to_points * len(label)
+        right = px + 3 + width <= ax.get_window_extent().x1  # else the label goes left of its dot
+        x0, x1 = (px + 3, px + 3 + width) if right else (px - 3 - width, px - 3)
+        for shift in (0, -1, 1, -2, 2, -3, 3, -4, 4, -5, 5, -6):  # nearest free line, below first
+            ty = py + 3 + shift * line
+            if not any(a0 < x1 and x0 < a1 and abs(ty - b) < line for a0, a1, b in placed):
+                break
+        placed.append((x0, x1, ty))
+        moved = ty != py + 3
+        ax.annotate(
+            label,
+            (x, y),
+            xytext=(3 if right else -3, (ty - py) * to_points),
+            textcoords="offset points",
+            ha="left" if right else "right",
+            fontsize=fontsize,
+            arrowprops={"arrowstyle": "-", "lw": 0.4, "color": "0.5"} if moved else None,
+        )
+
+
 def pareto_figure(points: list[dict], path: str | Path, title: str = "") -> Path:
     """Accuracy against cost, one labelled dot per point ({label, seconds, train_minutes, insertion_psnr,
     render_psnr}), the Pareto front as a line: columns insertion PSNR / re-render PSNR, rows against
     seconds per image / training minutes."""
     fig, axes = plt.subplots(2, 2, figsize=(12, 9))
+    labels = []
     for col, (acc, acc_label) in enumerate(
         (("insertion_psnr", "insertion PSNR, all objects (dB)"), ("render_psnr", "test re-render PSNR (dB)"))
     ):
@@ -245,13 +278,22 @@ def pareto_figure(points: list[dict], path: str | Path, title: str = "") -> Path
             ys = [p[acc] for p in points]
             shown = [i for i in range(len(points)) if np.isfinite(xs[i]) and np.isfinite(ys[i])]
             ax.scatter([xs[i] for i in shown], [ys[i] for i in shown], s=28, color="tab:blue", zorder=3)
-            for i in shown:
-                ax.annotate(points[i]["label"], (xs[i], ys[i]), fontsize=7, xytext=(3, 3), textcoords="offset points")
+            positive = [xs[i] for i in shown if xs[i] > 0]
+            if len(positive) == len(shown) and positive and max(positive) > 4 * min(positive):
+                ax.set_xscale("log")  # one slow setting (no_mc) would squeeze every other point into a column
+                plain = FuncFormatter(lambda v, _: f"{v:g}")
+                ax.xaxis.set_major_formatter(plain), ax.xaxis.set_minor_formatter(plain)
             front = pareto_front(xs, ys)
             if front:
                 ax.plot([xs[i] for i in front], [ys[i] for i in front], color="tab:red", lw=1.2, label="Pareto front")
                 ax.legend(fontsize=8, loc="lower right")
+            labels.append((ax, [(points[i]["label"], xs[i], ys[i]) for i in shown]))
             ax.set_xlabel(cost_label)
             ax.set_ylabel(acc_label)
             ax.grid(alpha=0.3)
+    if title:
+        fig.suptitle(title, fontsize=9)
+    fig.tight_layout()  # final axes sizes before labels are placed in display space
+    for ax, labelled in labels:
+        _label_points(ax, labelled)
     return save(fig, path, title)

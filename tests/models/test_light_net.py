@@ -28,6 +28,20 @@ def test_generated_mlp_equals_an_ordinary_mlp_with_the_same_weights():
         assert torch.allclose(out[sel], mlp(x[sel]), atol=1e-6)
 
 
+def test_generated_mlp_same_for_grouped_and_interleaved_points_and_for_none():
+    # grouped points skip the sort: same rows as the interleaved order, permuted; zero points -> (0, out)
+    torch.manual_seed(3)
+    params = HyperMLP(feature_dim=5, sizes=[4, 7, 3])(torch.randn(3, 5))
+    x = torch.randn(8, 4)
+    scene = torch.tensor([2, 0, 2, 1, 0, 2, 1, 0])
+    order = torch.argsort(scene, stable=True)
+    interleaved = HyperMLP.run_generated(params, x, scene)
+    grouped = HyperMLP.run_generated(params, x[order], scene[order])
+    assert torch.equal(grouped, interleaved[order])
+    empty = HyperMLP.run_generated(params, x[:0], scene[:0])
+    assert empty.shape == (0, 3)
+
+
 def test_generated_mlp_gradients_match_a_per_point_weight_gather():
     # the grouped evaluation must give the same values and weight gradients as gathering W[scene[i]] per
     # point, also with a scene that has no points
@@ -218,3 +232,14 @@ def test_chunked_queries_equal_one_pass_over_all_rays(monkeypatch, interleave):
     assert grads.keys() == chunk_grads.keys() and len(grads) > 10
     for name, g in grads.items():
         assert torch.allclose(chunk_grads[name], g, rtol=1e-10, atol=1e-12), name
+
+
+@pytest.mark.parametrize("mode", ("mixed", "ssrt_only", "out_of_view_only"))
+def test_no_rays_give_no_radiance(mode):
+    # a batch whose every pixel is masked out queries zero rays: an empty result, not an error
+    torch.manual_seed(0)
+    im, gbuffer, fov, origin, wi, bidx = _scene()
+    net = LightNet(mode=mode, out_of_view={"samples": 4})
+    with torch.no_grad():
+        L = net(net.encode(im, gbuffer["depth"], fov), gbuffer, fov, origin[:0], wi[:0], bidx[:0])["radiance"]
+    assert L.shape == (0, 3)

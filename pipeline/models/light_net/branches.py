@@ -264,7 +264,7 @@ class OutOfViewBranch(nn.Module):
         spacing = self.samples / (t_far - t_near).clamp(min=1e-3) if self.bounds == "box" else None
         step = max(1, POINT_CHUNK // self.samples)
         parts = []
-        for i in range(0, len(wi), step):
+        for i in range(0, max(len(wi), 1), step):  # at least one (possibly empty) chunk
             c = slice(i, i + step)
             pts = origin[c, None, :] + mids[c, :, None] * wi[c, None, :]  # (n, S, 3)
             pts = (pts - centre[c, None]) / half[c, None]

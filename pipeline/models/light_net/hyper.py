@@ -118,6 +118,8 @@ class HyperMLP(nn.Module):
                 if k < len(params) - 1:
                     xs = F.relu(xs)
             groups.append(xs)
+        if not groups:  # no points at all
+            return x.new_zeros(0, params[-1][0].shape[1])
         out = groups[0] if len(groups) == 1 else torch.cat(groups)
         if grouped:
             return out
