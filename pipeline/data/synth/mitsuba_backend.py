@@ -205,6 +205,28 @@ def render_view(scene, camera: Camera, width: int, height: int, spp: int, seed: 
 # Ray queries
 
 
+JIT_ALIGN_BYTES = 64
+
+
+def _jit_columns(points: np.ndarray) -> list[np.ndarray]:
+    """The columns of (N, 3) `points` as contiguous float32 arrays that start on a 64-byte boundary.
+
+    Dr.Jit reads numpy input in place and writes the buffer's alignment into the kernel it compiles, so
+    numpy's varying allocation alignment made every call a new kernel to compile (and the kernel cache
+    never hit): compilation was over half of `synthesize`. Aligned copies keep one kernel per scene.
+    """
+    points = np.asarray(points, np.float32)
+    step = JIT_ALIGN_BYTES // points.itemsize
+    columns = []
+    for values in points.T:
+        buf = np.empty(len(values) + step, np.float32)
+        start = (-buf.ctypes.data % JIT_ALIGN_BYTES) // points.itemsize
+        column = buf[start : start + len(values)]
+        column[:] = values
+        columns.append(column)
+    return columns
+
+
 def intersect(scene, origins: np.ndarray, directions: np.ndarray) -> dict[str, np.ndarray]:
     """First hits of world-space rays (N, 3): t (N,) metres (inf on a miss), shading normal (N, 3) world,
     base colour (N, 3), roughness (N,), metallic (N,), lamp (N,) bool (the hit shape is an emitter)."""
@@ -215,25 +237,40 @@ def intersect(scene, origins: np.ndarray, directions: np.ndarray) -> dict[str, n
 
 
 def _intersect_vectorised(scene, origins, directions):
+    import drjit as dr
     import mitsuba as mi
 
-    o = np.ascontiguousarray(origins, np.float32)
-    d = np.ascontiguousarray(directions, np.float32)
-    ray = mi.Ray3f(mi.Point3f(*o.T), mi.Vector3f(*d.T))
+    o, d = _jit_columns(origins), _jit_columns(directions)  # kept alive until the results are read
+    ray = mi.Ray3f(mi.Point3f(*o), mi.Vector3f(*d))
     si = scene.ray_intersect(ray)
     valid = si.is_valid()
     bsdf = si.bsdf(ray)
-    out = {
-        "hit": np.array(valid, dtype=bool),
-        "t": np.array(si.t, dtype=np.float64),
-        "normal": np.array(si.sh_frame.n, dtype=np.float64).T.reshape(-1, 3),
-        "albedo": np.array(bsdf.eval_attribute_3("base_color", si, valid), dtype=np.float32).T.reshape(-1, 3),
-        "roughness": np.array(bsdf.eval_attribute_1("roughness", si, valid), dtype=np.float32).reshape(-1),
-        "metallic": np.array(bsdf.eval_attribute_1("metallic", si, valid), dtype=np.float32).reshape(-1),
-        "lamp": np.array(valid & (si.shape.emitter() != None), dtype=bool),  # noqa: E711 (drjit pointer compare)
+    fields = {
+        "hit": valid,
+        "t": si.t,
+        "normal": si.sh_frame.n,
+        "albedo": bsdf.eval_attribute_3("base_color", si, valid),
+        "roughness": bsdf.eval_attribute_1("roughness", si, valid),
+        "metallic": bsdf.eval_attribute_1("metallic", si, valid),
+        "lamp": valid & (si.shape.emitter() != None),  # noqa: E711 (drjit pointer compare)
     }
+    dr.eval(*fields.values())  # one kernel, whatever the number of rays
+    dtypes = {"hit": bool, "t": np.float64, "normal": np.float64, "lamp": bool}
+    out = {k: _to_numpy(v, dtypes.get(k, np.float32)) for k, v in fields.items()}
     out["t"][~out["hit"]] = np.inf
     return out
+
+
+def _to_numpy(values, dtype) -> np.ndarray:
+    """An evaluated Dr.Jit array, (N,) or a 3-vector as (N, 3), copied out one channel at a time.
+
+    Converting a 3-vector whole runs a kernel that interleaves its channels with N and 2N written into
+    the code, so each new ray count compiled the whole computation again."""
+    import drjit as dr
+
+    if dr.size_v(values) == 3:
+        return np.stack([np.array(values[k], dtype=dtype) for k in range(3)], axis=-1)
+    return np.array(values, dtype=dtype).reshape(-1)
 
 
 def _intersect_one(scene, o, d):
@@ -284,13 +321,17 @@ def radiance(
 
 
 def _trace_vectorised(scene, o, d, seed):
+    import drjit as dr
     import mitsuba as mi
 
     sampler = mi.load_dict({"type": "independent"})
-    sampler.seed(int(seed) & 0x7FFFFFFF, len(o))
-    ray = mi.RayDifferential3f(mi.Ray3f(mi.Point3f(*o.T), mi.Vector3f(*d.T)))
+    # an opaque seed is a kernel parameter; a plain int is a literal in the code, one kernel per seed
+    sampler.seed(dr.opaque(mi.UInt32, int(seed) & 0x7FFFFFFF), len(o))
+    o, d = _jit_columns(o), _jit_columns(d)  # kept alive until the results are read
+    ray = mi.RayDifferential3f(mi.Ray3f(mi.Point3f(*o), mi.Vector3f(*d)))
     L, _, _ = scene.integrator().sample(scene, sampler, ray)
-    return np.array(L, dtype=np.float64).T.reshape(-1, 3)
+    dr.eval(L)
+    return _to_numpy(L, np.float64)
 
 
 def _trace_loop(scene, o, d, seed):
