@@ -3,10 +3,12 @@ metrics gathered into `reports/report/`:
 
 - `ablations.md`: the paper-style table. Per preset, means over seeds with their spread (half the range),
   and against its reference (`full` for LightNet, `material_small` for MaterialNet) the paired difference
-  per seed on the preset's claim metric. A difference counts only when every seed's difference has the
-  same sign and its mean exceeds the reference's own seed spread; otherwise it is "no difference". Beside
-  each claim of the paper: supported, contradicted, or not shown. Then stability (non-finite metrics,
-  unavailable presets, the five worst test views are in the stage reports) and the main stages' gates.
+  per seed on the preset's claim metric; `full`'s test-time out-of-view thresholds as rows of their own
+  (`full:out_threshold_<t>`: the same weights, paired with `full` on the re-render PSNR). A difference
+  counts only when every seed's difference has the same sign and its mean exceeds the reference's own
+  seed spread; otherwise it is "no difference". Beside each claim of the paper: supported, contradicted,
+  or not shown. Then stability (non-finite metrics, unavailable presets, the five worst test views are in
+  the stage reports) and the main stages' gates.
 - `pareto.png`: accuracy (insertion PSNR over all objects, and test re-render PSNR) against full-frame
   seconds per image, one point per preset (mean over seeds) and per test-time threshold, the Pareto
   front marked; training minutes in the second row.
@@ -166,6 +168,37 @@ def table(runs: dict, stage: str, columns: list) -> tuple[list[str], dict[str, f
     return lines, numbers
 
 
+def threshold_runs(runs: dict, reference: str = "full") -> dict[str, dict[int, dict]]:
+    """The reference preset's test-time out-of-view thresholds as rows of their own, keyed
+    `<reference>:out_threshold_<t>`: its `out_threshold_<t>/` metrics and seconds per image, the same
+    weights and seeds, so each seed's difference to the reference is paired on the same network. No
+    training or insertion columns: neither is re-run at a threshold. (A colon, not a comma: the key
+    becomes an MLflow metric name.)"""
+    derived: dict[str, dict[int, dict]] = {}
+    for seed, data in runs.get(reference, {}).items():
+        prefixes = sorted({k.split("/", 1)[0] for k in data["metrics"] if k.startswith("out_threshold_")})
+        for prefix in prefixes:
+            t = prefix.removeprefix("out_threshold_")
+            name = f"{reference}:out_threshold_{t}"
+            preset = {
+                "name": name,
+                "stage": data["preset"]["stage"],
+                "changes": f"test time: the out-of-view branch queried only where u >= {t} ({reference}'s weights)",
+                "reference": reference,
+                "seed": seed,
+                "expect": {"metric": "test/render_psnr", "higher_is_better": True, "holds_if": ""},
+            }
+            metrics = {k.removeprefix(f"{prefix}/"): v for k, v in data["metrics"].items() if k.startswith(prefix)}
+            seconds = data["timings"].get(f"{prefix}/seconds_per_image", float("nan"))
+            derived.setdefault(name, {})[seed] = {
+                "preset": preset,
+                "metrics": metrics,
+                "timings": {"seconds_per_image": seconds},
+                "worst_views": [],
+            }
+    return derived
+
+
 def stability(runs: dict) -> list[str]:
     """Per preset: non-finite training losses and test metrics, diverged runs, unavailable runs, and the
     five test views LightNet renders worst (first seed; insertion PSNR, the scaled constant's beside)."""
@@ -244,7 +277,7 @@ def run(cfg: DictConfig) -> dict[str, float]:
     reports, out = Path(cfg.reports_root), Path(cfg.report_dir)
     runs = read_runs(Path(cfg.ablate_dir))
     out.mkdir(parents=True, exist_ok=True)
-    light_rows, light_numbers = table(runs, "train_lighting", LIGHT_COLUMNS)
+    light_rows, light_numbers = table({**runs, **threshold_runs(runs)}, "train_lighting", LIGHT_COLUMNS)
     mat_rows, mat_numbers = table(runs, "train_material", MATERIAL_COLUMNS)
     doc = [
         f"# Ablations ({cfg.profile_name})",
@@ -253,6 +286,8 @@ def run(cfg: DictConfig) -> dict[str, float]:
         "metric, per seed (same seed, same data, same schedule); a difference counts only when every seed",
         "agrees in sign and the mean exceeds the reference's own seed spread, else it is no difference.",
         "s/image: median seconds of a full-frame re-render at the evaluation spp on this machine.",
+        "`full:out_threshold_t`: `full`'s own weights tested with the out-of-view branch queried only where",
+        "u >= t (no training and no insertion at a threshold), paired with `full` seed by seed.",
         "",
         "## LightNet",
         *light_rows,

@@ -203,3 +203,22 @@ def test_pareto_front_is_the_set_no_point_dominates():
     xs = [1.0, 2.0, 3.0, 1.5, float("nan")]
     ys = [10.0, 12.0, 11.0, 9.0, 20.0]
     assert pareto_front(xs, ys) == [0, 1]  # (3, 11) is beaten by (2, 12), (1.5, 9) by (1, 10); NaN never
+
+
+def test_report_lists_the_test_time_thresholds_paired_with_their_weights(tmp_path):
+    from pipeline.runs.report import read_runs, table, threshold_runs
+
+    root = _fake_runs(tmp_path, {("full", 0): 20.0, ("full", 1): 20.4})
+    for seed, psnr in ((0, 19.5), (1, 19.8)):  # each seed's own weights at u >= 0.5: -0.5, -0.6
+        path = root / f"full-s{seed}" / "metrics.json"
+        metrics = json.loads(path.read_text())
+        path.write_text(json.dumps({**metrics, "out_threshold_0.5/test/render_psnr": psnr}))
+        timings = root / f"full-s{seed}" / "timings.json"
+        timings.write_text(json.dumps({**json.loads(timings.read_text()), "out_threshold_0.5/seconds_per_image": 0.5}))
+    runs = read_runs(root)
+    derived = threshold_runs(runs)
+    assert list(derived) == ["full:out_threshold_0.5"] and sorted(derived["full:out_threshold_0.5"]) == [0, 1]
+    lines, numbers = table({**runs, **derived}, "train_lighting", [("test/render_psnr", "re-render PSNR", True)])
+    [row] = [line for line in lines if line.startswith("| full:out_threshold_0.5 |")]
+    assert "19.65 ± 0.15" in row and "0.500" in row and "-0.500, -0.600 -> reference better" in row
+    assert numbers["full:out_threshold_0.5/vs_reference/test/render_psnr"] == pytest.approx(-0.55)
