@@ -16,9 +16,11 @@ A preset that needs something absent here (`preset.requires`, e.g. VGG16 weights
 `available: 0` and why, and trains nothing: no pretend version.
 
 Writes `outputs/ablate/<preset>-s<seed>/` (the stage's checkpoints and export) and
-`reports/ablate/<preset>-s<seed>/{metrics.json, timings.json, preset.json}`; the stage's own report goes
-to `.../stage/`. One MLflow run `ablate-<profile>` per preset and seed (tags preset, seed) holds them,
-with the training stage's run nested in it.
+`reports/ablate/<preset>-s<seed>/{metrics.json, timings.json, preset.json}` (LightNet presets also
+`worst_views.json` and `insertion_scatter.png`, every case's PSNR against the scaled constant's); the
+stage's own report goes to `.../stage/`. One MLflow run `ablate-<profile>` per preset and seed (tags
+preset, seed) holds them, its figures under `figures/` (a MaterialNet preset's test maps), with the
+training stage's run nested in it.
 """
 
 from __future__ import annotations
@@ -35,6 +37,7 @@ from pipeline.data.datamodules import InteriorVerseDataModule
 from pipeline.models.light_net import load_light_export
 from pipeline.runs import edit, train_lighting, train_material
 from pipeline.tracking import publish, stage_run
+from pipeline.tracking.figures import paired_scatter
 
 CONF_DIR = Path(__file__).resolve().parents[2] / "conf"
 STAGES = {"train_lighting": train_lighting, "train_material": train_material}
@@ -136,9 +139,10 @@ def full_frame_render(system, batch) -> torch.Tensor:
     return rgb
 
 
-def lighting_extras(cfg: DictConfig, stage_cfg: DictConfig) -> tuple[dict, dict, list[dict]]:
-    """(metrics, timings, worst views) beyond the stage's own: insertion/editing scores, seconds per
-    image, the test-time thresholds for the `full` preset, the views LightNet renders worst."""
+def lighting_extras(cfg: DictConfig, stage_cfg: DictConfig) -> tuple[dict, dict, list[dict], Path]:
+    """(metrics, timings, worst views, figure) beyond the stage's own: insertion/editing scores, seconds
+    per image, the test-time thresholds for the `full` preset, the views LightNet renders worst, and the
+    per-case insertion figure (`insertion_figure`)."""
     export = Path(stage_cfg.out_dir) / "model.pt"
     net, _ = load_light_export(export)
     system = train_lighting.build_system(stage_cfg)
@@ -177,7 +181,22 @@ def lighting_extras(cfg: DictConfig, stage_cfg: DictConfig) -> tuple[dict, dict,
     metrics.update({f"edit/{k}": v for k, v in insertion.items()})
     timings["insertion_minutes"] = (time.perf_counter() - t0) / 60.0
     worst = worst_views(records, int(cfg.worst_views))
-    return metrics, timings, worst
+    figure = insertion_figure(records, Path(cfg.report_dir) / "insertion_scatter.png", f"{cfg.preset}, seed {cfg.seed}")
+    return metrics, timings, worst, figure
+
+
+def insertion_figure(records: list[dict], path: Path, name: str) -> Path:
+    """Every insertion and editing case's PSNR under this preset's LightNet against the exposure-scaled
+    constant on the same case (`paired_scatter`), grouped by object class and edit kind."""
+    groups = [f"{'object' if r['kind'] == 'object' else 'edit'} {r['label']}" for r in records]
+    return paired_scatter(
+        np.array([r["scaled_constant/psnr"] for r in records]),
+        np.array([r["lightnet/psnr"] for r in records]),
+        groups,
+        path,
+        labels=("scaled constant PSNR (dB)", "LightNet PSNR (dB)"),
+        title=f"{name}: insertion and editing cases against Mitsuba",
+    )
 
 
 def worst_views(records: list[dict], k: int) -> list[dict]:
@@ -260,11 +279,16 @@ def run(cfg: DictConfig) -> dict[str, float]:
         timings = {"train_minutes": minutes}
         artifacts = [report / "preset.json"]
         if stage == "train_lighting":
-            extra, extra_timings, worst = lighting_extras(cfg, stage_cfg)
+            extra, extra_timings, worst, figure = lighting_extras(cfg, stage_cfg)
             metrics.update(extra)
             timings.update(extra_timings)
             (report / "worst_views.json").write_text(json.dumps(worst, indent=1))
             artifacts.append(report / "worst_views.json")
+            mlflow.log_artifact(str(figure), "figures")
+        else:  # the training stage's test maps, also on the ablate run itself
+            figure = Path(stage_cfg.report_dir) / "test_maps.png"
+            if figure.is_file():
+                mlflow.log_artifact(str(figure), "figures")
         metrics.update(training_health(run.info.run_id, metrics))
         timings["stage_minutes"] = (time.perf_counter() - started) / 60.0  # from the start of run(): imports excluded
         publish(report, metrics, artifacts=tuple(artifacts), timings=timings)

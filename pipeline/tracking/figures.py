@@ -297,3 +297,27 @@ def pareto_figure(points: list[dict], path: str | Path, title: str = "") -> Path
     for ax, labelled in labels:
         _label_points(ax, labelled)
     return save(fig, path, title)
+
+
+def paired_scatter(
+    reference: np.ndarray, model: np.ndarray, groups: list[str], path: str | Path, labels=("", ""), title: str = ""
+) -> Path:
+    """One dot per case, the reference's score (x) against the model's (y) on the same case, coloured by
+    group, with the diagonal: dots above it are cases the model wins. reference/model (N,) scores; groups
+    N names; labels the two axes."""
+    reference, model = np.asarray(reference, float), np.asarray(model, float)
+    fig, ax = plt.subplots(figsize=(5.2, 4.8))
+    for i, group in enumerate(sorted(set(groups))):
+        sel = np.array([g == group for g in groups])
+        won = float(np.mean(model[sel] > reference[sel]))
+        ax.scatter(reference[sel], model[sel], s=14, color=f"C{i}", label=f"{group} ({sel.sum()}, wins {won:.0%})")
+    finite = np.concatenate([reference, model])
+    finite = finite[np.isfinite(finite)]
+    if len(finite):
+        lo, hi = float(finite.min()), float(finite.max())
+        ax.plot([lo, hi], [lo, hi], color="0.4", lw=0.8, ls="--")
+    ax.set_xlabel(labels[0])
+    ax.set_ylabel(labels[1])
+    ax.grid(alpha=0.3)
+    ax.legend(fontsize=7, loc="lower right")
+    return save(fig, path, title)

@@ -107,6 +107,12 @@ def test_ablate_stage_and_hydra_multirun_give_the_same_metrics(pipeline_outputs,
     assert "edit/insert/all/lightnet/psnr" in metrics and "out_threshold_0.9/test/render_psnr" in metrics
     assert metrics["health/diverged"] == 0.0 and metrics["health/logged_train_losses"] > 0
     assert len(json.loads((folder / "worst_views.json").read_text())) >= 1
+    assert (folder / "insertion_scatter.png").stat().st_size > 10_000
+    [ablate_run] = mlflow.search_runs(
+        experiment_names=["test-ablate"], filter_string="tags.preset = 'full'", output_format="list"
+    )
+    logged = [a.path for a in mlflow.MlflowClient().list_artifacts(ablate_run.info.run_id, "figures")]
+    assert logged == ["figures/insertion_scatter.png"]
 
     run_stage_process(
         "train_lighting",
