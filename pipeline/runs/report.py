@@ -225,9 +225,10 @@ def stability(runs: dict) -> list[str]:
 
 
 def pareto_points(runs: dict) -> list[dict]:
-    """One point per LightNet preset (means over seeds) and per test-time threshold of `full`."""
+    """One point per LightNet preset (means over seeds) and per test-time threshold of `full`
+    (`threshold_runs`: no training minutes or insertion, so those panels leave them out)."""
     points = []
-    for name, seeds in sorted(runs.items()):
+    for name, seeds in sorted({**runs, **threshold_runs(runs)}.items()):
         ds = list(seeds.values())
         if ds[0]["preset"]["stage"] != "train_lighting" or "unavailable" in ds[0]["preset"]:
             continue
@@ -245,19 +246,6 @@ def pareto_points(runs: dict) -> list[dict]:
                 "render_psnr": mean("metrics", "test/render_psnr"),
             }
         )
-        if name == "full":
-            for key in ds[0]["timings"]:
-                if key.startswith("out_threshold_") and key.endswith("/seconds_per_image"):
-                    t = key.removesuffix("/seconds_per_image")
-                    points.append(
-                        {
-                            "label": f"full, {t.replace('_', ' ')}",
-                            "seconds": mean("timings", key),
-                            "train_minutes": float("nan"),
-                            "insertion_psnr": float("nan"),
-                            "render_psnr": mean("metrics", f"{t}/test/render_psnr"),
-                        }
-                    )
     return points
 
 

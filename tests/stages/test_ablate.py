@@ -9,6 +9,7 @@ import os
 from pathlib import Path
 
 import mlflow
+import numpy as np
 import pytest
 import torch
 
@@ -212,7 +213,7 @@ def test_pareto_front_is_the_set_no_point_dominates():
 
 
 def test_report_lists_the_test_time_thresholds_paired_with_their_weights(tmp_path):
-    from pipeline.runs.report import read_runs, table, threshold_runs
+    from pipeline.runs.report import pareto_points, read_runs, table, threshold_runs
 
     root = _fake_runs(tmp_path, {("full", 0): 20.0, ("full", 1): 20.4})
     for seed, psnr in ((0, 19.5), (1, 19.8)):  # each seed's own weights at u >= 0.5: -0.5, -0.6
@@ -228,3 +229,6 @@ def test_report_lists_the_test_time_thresholds_paired_with_their_weights(tmp_pat
     [row] = [line for line in lines if line.startswith("| full:out_threshold_0.5 |")]
     assert "19.65 ± 0.15" in row and "0.500" in row and "-0.500, -0.600 -> reference better" in row
     assert numbers["full:out_threshold_0.5/vs_reference/test/render_psnr"] == pytest.approx(-0.55)
+    [point] = [p for p in pareto_points(runs) if p["label"] == "full:out_threshold_0.5"]
+    assert point["seconds"] == 0.5 and point["render_psnr"] == pytest.approx(19.65)
+    assert np.isnan(point["train_minutes"]) and np.isnan(point["insertion_psnr"])
