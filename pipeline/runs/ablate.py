@@ -285,10 +285,8 @@ def run(cfg: DictConfig) -> dict[str, float]:
             (report / "worst_views.json").write_text(json.dumps(worst, indent=1))
             artifacts.append(report / "worst_views.json")
             mlflow.log_artifact(str(figure), "figures")
-        else:  # the training stage's test maps, also on the ablate run itself
-            figure = Path(stage_cfg.report_dir) / "test_maps.png"
-            if figure.is_file():
-                mlflow.log_artifact(str(figure), "figures")
+        else:  # the training stage's test maps (train_material always writes them), also on the ablate run
+            mlflow.log_artifact(str(Path(stage_cfg.report_dir) / "test_maps.png"), "figures")
         metrics.update(training_health(run.info.run_id, metrics))
         timings["stage_minutes"] = (time.perf_counter() - started) / 60.0  # from the start of run(): imports excluded
         publish(report, metrics, artifacts=tuple(artifacts), timings=timings)
