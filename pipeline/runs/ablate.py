@@ -156,6 +156,8 @@ def lighting_extras(cfg: DictConfig, stage_cfg: DictConfig) -> tuple[dict, dict,
     t0 = time.perf_counter()
     if str(cfg.preset) == "full":  # the out-of-view branch queried only where SSRT is unsure (u >= t)
         for t in cfg.test_time_thresholds:
+            if float(t) == base:  # the preset's own threshold: its stage's test pass already scored it
+                continue
             tested = lighting_test(system, dm.plain_loader("test"), float(t))
             metrics.update({f"out_threshold_{float(t):g}/{k}": v for k, v in tested.items()})
             timings[f"out_threshold_{float(t):g}/seconds_per_image"] = seconds_per_image(system, views, float(t))

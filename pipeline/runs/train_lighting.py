@@ -41,11 +41,27 @@ def build_system(cfg: DictConfig) -> LightingSystem:
         free_probes=int(lt.free_probes),
         render_weight=float(lt.render_weight),
         light_weight=float(lt.light_weight),
+        light_loss=str(lt.light_loss),
         eval_stride=int(lt.eval_stride),
         optimizer=instantiate(cfg.optim.optimizer),
         scheduler=instantiate(sched) if sched is not None else None,
         seed=int(cfg.seed),
     )
+
+
+@torch.no_grad()
+def test_scores(system: LightingSystem, dm: InteriorVerseDataModule) -> dict[str, float]:
+    """The system's test metrics as they stand (before training: the seeded initialisation), each the mean
+    over test batches weighted by their size, as Lightning reduces the test step's logs; outside Lightning
+    so the run's `test/` history holds the trained model alone."""
+    system.eval()
+    sums, weights = {}, {}
+    for batch in dm.test_dataloader():
+        n = len(batch["im"])
+        for k, v in system.evaluate_batch(batch).items():
+            sums[k], weights[k] = sums.get(k, 0.0) + v * n, weights.get(k, 0) + n
+    system.train()
+    return {k: sums[k] / weights[k] for k in sums}
 
 
 def run(cfg: DictConfig) -> dict[str, float]:
@@ -72,6 +88,7 @@ def run(cfg: DictConfig) -> dict[str, float]:
         # the first validation pass (before any training step) records the starting re-render PSNR; a
         # resumed run repeats it on the same seeded initialisation, so it reports the same number
         start = trainer.validate(system, datamodule=dm, verbose=False)[0] if cfg.lighting.validate_before else None
+        untrained = test_scores(system, dm) if cfg.lighting.test_before else {}
         trainer.fit(system, datamodule=dm, ckpt_path=resume, weights_only=True)
         if system.validated_at_step == trainer.global_step:  # the last epoch was validated: same weights
             last = float(trainer.callback_metrics["val/render_psnr"])
@@ -96,6 +113,7 @@ def run(cfg: DictConfig) -> dict[str, float]:
         metrics.update({f"baseline/{k}": v for k, v in logged.items() if "/" in k})
         if start is not None:
             metrics[f"{mode}/val/render_psnr_before_training"] = float(start["val/render_psnr"])
+        metrics.update({f"{mode}/untrained/test/{k}": v for k, v in untrained.items()})
         metrics[f"{mode}/val/render_psnr_after_training"] = after
         metrics[f"{mode}/val/render_psnr_last_epoch"] = last
         metrics["global_step"] = float(trainer.global_step)

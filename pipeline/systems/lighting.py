@@ -24,7 +24,7 @@ from pipeline.models.material_net import MaterialNet
 from pipeline.models.render_layer import MCRenderLayer
 from pipeline.ops.camera import grid_pixels, pixel_values
 from pipeline.systems.lighting_baselines import baseline_metrics
-from pipeline.systems.losses import hdr_relative_loss
+from pipeline.systems.losses import LIGHT_LOSSES, hdr_log_l1_loss, hdr_relative_loss
 
 QUERY_CHUNK = 8192  # LightNet queries per forward at evaluation (bounds memory)
 
@@ -58,6 +58,7 @@ class LightingSystem(L.LightningModule):
         free_probes: int = 2,
         render_weight: float = 1.0,
         light_weight: float = 1.0,
+        light_loss: str = "relative_mse",
         eval_stride: int = 4,
         optimizer: Callable | None = None,
         scheduler: Callable | None = None,
@@ -81,6 +82,9 @@ class LightingSystem(L.LightningModule):
         self.pixels, self.probes, self.texels, self.free_probes = pixels, probes, texels, free_probes
         self.render_weight, self.eval_stride = float(render_weight), int(eval_stride)
         self.light_weight = float(light_weight)  # 0: no direct light supervision (the re-render loss alone)
+        if light_loss not in LIGHT_LOSSES:
+            raise ValueError(f"lighting.light_loss={light_loss!r}: choose one of {LIGHT_LOSSES}")
+        self.light_loss = hdr_relative_loss if light_loss == "relative_mse" else hdr_log_l1_loss
         self.optimizer_fn, self.scheduler_fn = optimizer, scheduler
         self.generator = torch.Generator().manual_seed(int(seed))
         self.baselines = None  # lighting_baselines.Constants, set by the stage before testing
@@ -172,7 +176,7 @@ class LightingSystem(L.LightningModule):
         if rays is not None and self.light_weight > 0:
             rays = rays.to(self.device)
             pred = self.query(ctx, gb, fov, rays, self.generator)["radiance"]
-            losses["light"] = hdr_relative_loss(pred, rays.radiance, scale[rays.image])
+            losses["light"] = self.light_loss(pred, rays.radiance, scale[rays.image])
         pix = self.sample_pixels(batch["mask"][:, 0], self.pixels)
         rgb, b = self.train_layer.render_pixels(
             gb, fov, pix, self.light_fn(ctx, gb, fov, self.generator), self.generator

@@ -231,3 +231,16 @@ def hdr_relative_loss(pred: torch.Tensor, target: torch.Tensor, scale: torch.Ten
     is the conditional mean; it is a loss, not the reported `metrics.lighting.relmse`."""
     pred, target = pred / scale[:, None], target / scale[:, None]
     return (((pred - target) / (pred.detach() + eps)) ** 2).mean()
+
+
+def hdr_log_l1_loss(pred: torch.Tensor, target: torch.Tensor, scale: torch.Tensor):
+    """mean |log(1 + L^/s) - log(1 + L/s)| of radiance (M, 3) in units of each sample's image mean s (M,):
+    the reported light log-L1 as a loss. A lamp 100x the image mean and a wall at half of it both count
+    (about 4.6 and 0.4 in this space), and one huge texel cannot dominate a step as it does the relative
+    MSE. Its fixed point is the conditional median: the energy the median leaves out is asked for by the
+    re-rendering loss, which integrates the light as the image does."""
+    s = scale[:, None]
+    return (torch.log1p(pred.clamp(min=0) / s) - torch.log1p(target.clamp(min=0) / s)).abs().mean()
+
+
+LIGHT_LOSSES = ("relative_mse", "log_l1")

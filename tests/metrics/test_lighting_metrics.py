@@ -2,6 +2,7 @@
 
 import math
 
+import pytest
 import torch
 
 from pipeline.data.lighting import Probes, ViewLighting
@@ -65,6 +66,41 @@ def test_relative_mse_loss_is_exposure_invariant_and_stationary_at_the_mean():
     c = torch.full((64, 3), float(target.mean()), dtype=torch.float64, requires_grad=True)
     relative_mse(c, target.expand(64, 3).contiguous(), scale=scale).backward()
     assert abs(float(c.grad.sum())) < 1e-9
+
+
+def test_log_l1_loss_is_the_metric_and_stationary_at_the_median():
+    from pipeline.systems.losses import hdr_log_l1_loss
+
+    g = torch.Generator().manual_seed(1)
+    target = torch.rand(63, 3, generator=g, dtype=torch.float64) ** 4 * 10  # odd count: a unique median
+    pred = torch.rand(63, 3, generator=g, dtype=torch.float64)
+    scale = torch.full((63,), 0.3, dtype=torch.float64)
+    a = hdr_log_l1_loss(pred, target, scale)
+    assert torch.allclose(a, log_l1(pred, target, scale))
+    assert torch.allclose(hdr_log_l1_loss(pred * 7, target * 7, scale * 7), a)
+    # one shared prediction per channel: zero subgradient at the median, a net pull towards it elsewhere
+    median = target.median(0).values
+    for value, sign in ((median, 0.0), (median * 1.5, 1.0), (median * 0.5, -1.0)):
+        c = value.expand(63, 3).clone().requires_grad_(True)
+        hdr_log_l1_loss(c, target, scale).backward()
+        total = c.grad.sum(0)
+        if sign == 0.0:
+            assert torch.allclose(total, torch.zeros(3, dtype=torch.float64), atol=1e-12)
+        else:
+            assert bool((torch.sign(total) == sign).all())
+
+
+def test_light_loss_choice_is_checked():
+    from pipeline.systems.lighting import LightingSystem
+
+    with pytest.raises(ValueError, match="lighting.light_loss"):
+        LightingSystem(
+            light_net={},
+            material=None,
+            render={"estimator": "importance", "spp": 1, "eval_spp": 1, "seed": 0},
+            gbuffers="ground_truth",
+            light_loss="l2",
+        )
 
 
 def test_mean_training_radiance_and_its_exposure_ratio():
@@ -153,7 +189,6 @@ def test_probe_rays_take_every_texel_in_order_or_a_seeded_sample():
 
 def test_ssim_tonemapped_is_one_on_itself_exposure_invariant_and_masked():
     import numpy as np
-    import pytest
 
     from pipeline.metrics.image import ssim_tonemapped
 

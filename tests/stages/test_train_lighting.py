@@ -80,8 +80,14 @@ def test_stage_reports_mode_metrics_and_baselines(micro_shards, tmp_path):
         "baseline/gt_probes/render_psnr_at_probes",
         "baseline/model/render_psnr_at_probes",
         "mixed/val/render_psnr_before_training",
+        "mixed/untrained/test/surf_light_nmse",
+        "mixed/untrained/test/free_light_log_l1",
+        "mixed/untrained/test/render_psnr",
     ):
         assert np.isfinite(metrics[key]), key
+    # the untrained network is scored on the same split and keys as the trained one, not on its own
+    untrained = {k.removeprefix("mixed/untrained/test/") for k in metrics if k.startswith("mixed/untrained/test/")}
+    assert untrained == {k.removeprefix("mixed/test/") for k in metrics if k.startswith("mixed/test/")}
     for kind in ("surf", "free"):  # every probe ray falls in exactly one ray class
         shares = [metrics[f"mixed/test/{kind}_rays_{c}"] for c in ("hit", "uncertain", "miss")]
         assert sum(shares) == pytest.approx(1.0), kind
