@@ -101,17 +101,10 @@ def unavailable(stage_cfg: DictConfig) -> str | None:
 
 @torch.no_grad()
 def lighting_test(system, loader, threshold: float) -> dict[str, float]:
-    """Test metrics of `system` at out-of-view threshold `threshold`: the batch-weighted means of
-    `evaluate_batch` over `loader` (what the stage's test pass logs)."""
-    system.eval()
+    """Test metrics of `system` at out-of-view threshold `threshold` (`train_lighting.test_scores`: what
+    the stage's test pass logs)."""
     system.net.out_threshold = float(threshold)
-    sums, n = {}, 0
-    for batch in loader:
-        bs = batch["im"].shape[0]
-        for k, v in system.evaluate_batch(batch).items():
-            sums[k] = sums.get(k, 0.0) + v * bs
-        n += bs
-    return {f"test/{k}": v / n for k, v in sums.items()}
+    return {f"test/{k}": v for k, v in train_lighting.test_scores(system, loader).items()}
 
 
 @torch.no_grad()

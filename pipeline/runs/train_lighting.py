@@ -50,13 +50,13 @@ def build_system(cfg: DictConfig) -> LightingSystem:
 
 
 @torch.no_grad()
-def test_scores(system: LightingSystem, dm: InteriorVerseDataModule) -> dict[str, float]:
-    """The system's test metrics as they stand (before training: the seeded initialisation), each the mean
-    over test batches weighted by their size, as Lightning reduces the test step's logs; outside Lightning
-    so the run's `test/` history holds the trained model alone."""
+def test_scores(system: LightingSystem, loader) -> dict[str, float]:
+    """`evaluate_batch` over `loader`'s batches, each metric the mean weighted by batch size as Lightning
+    reduces the test step's logs, outside Lightning (before training: the seeded initialisation, which
+    then stays out of the run's `test/` history)."""
     system.eval()
     sums, weights = {}, {}
-    for batch in dm.test_dataloader():
+    for batch in loader:
         n = len(batch["im"])
         for k, v in system.evaluate_batch(batch).items():
             sums[k], weights[k] = sums.get(k, 0.0) + v * n, weights.get(k, 0) + n
@@ -88,7 +88,7 @@ def run(cfg: DictConfig) -> dict[str, float]:
         # the first validation pass (before any training step) records the starting re-render PSNR; a
         # resumed run repeats it on the same seeded initialisation, so it reports the same number
         start = trainer.validate(system, datamodule=dm, verbose=False)[0] if cfg.lighting.validate_before else None
-        untrained = test_scores(system, dm) if cfg.lighting.test_before else {}
+        untrained = test_scores(system, dm.test_dataloader()) if cfg.lighting.test_before else {}
         trainer.fit(system, datamodule=dm, ckpt_path=resume, weights_only=True)
         if system.validated_at_step == trainer.global_step:  # the last epoch was validated: same weights
             last = float(trainer.callback_metrics["val/render_psnr"])
