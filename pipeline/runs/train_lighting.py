@@ -53,14 +53,15 @@ def build_system(cfg: DictConfig) -> LightingSystem:
 def test_scores(system: LightingSystem, loader) -> dict[str, float]:
     """`evaluate_batch` over `loader`'s batches, each metric the mean weighted by batch size as Lightning
     reduces the test step's logs, outside Lightning (before training: the seeded initialisation, which
-    then stays out of the run's `test/` history)."""
+    then stays out of the run's `test/` history). The system's train/eval mode is restored afterwards."""
+    was_training = system.training
     system.eval()
     sums, weights = {}, {}
     for batch in loader:
         n = len(batch["im"])
         for k, v in system.evaluate_batch(batch).items():
             sums[k], weights[k] = sums.get(k, 0.0) + v * n, weights.get(k, 0) + n
-    system.train()
+    system.train(was_training)
     return {k: sums[k] / weights[k] for k in sums}
 
 

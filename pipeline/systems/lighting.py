@@ -2,8 +2,9 @@
 
 Per training step, for a batch of views: G-buffers (the frozen MaterialNet's predictions, its depth in
 metres through the exported depth scale, or the ground truth), random probes and texels of the lighting
-ground truth (`losses.hdr_relative_loss`), and K random valid pixels re-rendered through the render layer
-with LightNet as the incident-radiance callback (L2 against the input, in units of the image mean).
+ground truth (`losses.LIGHT_LOSSES`, chosen by `lighting.light_loss`), and K random valid pixels
+re-rendered through the render layer with LightNet as the incident-radiance callback (L2 against the
+input, in units of the image mean).
 Validation and test score every probe texel and a stride grid of pixels at the evaluation spp, with a
 generator seeded from `render.seed`; the test step also scores the content-blind baselines
 (`lighting_baselines`) on the same views and directions.
@@ -24,7 +25,7 @@ from pipeline.models.material_net import MaterialNet
 from pipeline.models.render_layer import MCRenderLayer
 from pipeline.ops.camera import grid_pixels, pixel_values
 from pipeline.systems.lighting_baselines import baseline_metrics
-from pipeline.systems.losses import LIGHT_LOSSES, hdr_log_l1_loss, hdr_relative_loss
+from pipeline.systems.losses import LIGHT_LOSSES
 
 QUERY_CHUNK = 8192  # LightNet queries per forward at evaluation (bounds memory)
 
@@ -83,8 +84,8 @@ class LightingSystem(L.LightningModule):
         self.render_weight, self.eval_stride = float(render_weight), int(eval_stride)
         self.light_weight = float(light_weight)  # 0: no direct light supervision (the re-render loss alone)
         if light_loss not in LIGHT_LOSSES:
-            raise ValueError(f"lighting.light_loss={light_loss!r}: choose one of {LIGHT_LOSSES}")
-        self.light_loss = hdr_relative_loss if light_loss == "relative_mse" else hdr_log_l1_loss
+            raise ValueError(f"lighting.light_loss={light_loss!r}: choose one of {tuple(LIGHT_LOSSES)}")
+        self.light_loss = LIGHT_LOSSES[light_loss]
         self.optimizer_fn, self.scheduler_fn = optimizer, scheduler
         self.generator = torch.Generator().manual_seed(int(seed))
         self.baselines = None  # lighting_baselines.Constants, set by the stage before testing

@@ -12,6 +12,7 @@ import torch
 from torch import nn
 from torch.nn import functional as F
 
+from pipeline.metrics.lighting import log_l1
 from pipeline.metrics.synthetic import depth_mask, ls_scale
 
 
@@ -239,8 +240,7 @@ def hdr_log_l1_loss(pred: torch.Tensor, target: torch.Tensor, scale: torch.Tenso
     (about 4.6 and 0.4 in this space), and one huge texel cannot dominate a step as it does the relative
     MSE. Its fixed point is the conditional median: the energy the median leaves out is asked for by the
     re-rendering loss, which integrates the light as the image does."""
-    s = scale[:, None]
-    return (torch.log1p(pred.clamp(min=0) / s) - torch.log1p(target.clamp(min=0) / s)).abs().mean()
+    return log_l1(pred, target, scale)
 
 
-LIGHT_LOSSES = ("relative_mse", "log_l1")
+LIGHT_LOSSES = {"relative_mse": hdr_relative_loss, "log_l1": hdr_log_l1_loss}  # lighting.light_loss
