@@ -12,6 +12,12 @@ same views, probe texels, pixels and sample directions as the model.
   model at the light loss's fixed point (the conditional mean) that cannot place sources within a probe
   scores about like the mean oracle, and the gap to the median shows how much relMSE and log-L1 reward a
   low prediction rather than the light's energy.
+- `probe_profile_oracle`: the mean oracle shaped by the training split's mean angular profile: each texel
+  gets its probe's true mean times how bright, relative to its probe's mean, training texels of that kind
+  were on average at the same elevation (view-space up component of the texel's centre direction, in
+  `PROFILE_BINS` equal solid-angle bands). Light energy known, placement only the typical "lamps above,
+  floor below": the nMSE a model could reach by getting each probe's energy right without locating its
+  sources.
 """
 
 from __future__ import annotations
@@ -27,21 +33,45 @@ from pipeline.models.light_net.branches import image_scale
 from pipeline.ops.camera import grid_pixels, pixel_values
 from pipeline.ops.envmap import hemisphere_lookup
 
+PROFILE_BINS = 8  # elevation bands of the angular profile, equal in solid angle (uniform in the up component)
+
 
 @dataclass
 class Constants:
-    """constant (3,): mean training radiance; ratio (3,): mean training radiance in image means."""
+    """constant (3,): mean training radiance; ratio (3,): mean training radiance in image means;
+    profile: {kind: (PROFILE_BINS,)} mean texel radiance relative to its probe's mean, by elevation band."""
 
     constant: torch.Tensor
     ratio: torch.Tensor
+    profile: dict[str, torch.Tensor]
 
     def to(self, device) -> Constants:
-        return Constants(self.constant.to(device), self.ratio.to(device))
+        profile = {k: v.to(device) for k, v in self.profile.items()}
+        return Constants(self.constant.to(device), self.ratio.to(device), profile)
+
+
+def elevation_band(directions: torch.Tensor) -> torch.Tensor:
+    """Band index (...,) in [0, PROFILE_BINS) of unit view-space directions (..., 3) by their up (y)
+    component: band 0 looks straight down, the last straight up (OpenGL view space, y up)."""
+    y = directions[..., 1].clamp(-1.0, 1.0)
+    return ((y + 1.0) * 0.5 * PROFILE_BINS).long().clamp(max=PROFILE_BINS - 1)
+
+
+def _relative_texels(probes) -> tuple[torch.Tensor, torch.Tensor] | None:
+    """(band (P, T), radiance over its probe's mean, averaged over RGB (P, T)) of one kind's probes."""
+    d, r = probes.texels()
+    if not len(r):
+        return None
+    mean = r.double().mean(1, keepdim=True).clamp(min=1e-12)
+    return elevation_band(d), (r.double() / mean).mean(-1)
 
 
 def mean_training_radiance(loader) -> Constants:
-    """Both constants over every probe texel of the training split (a loader of collated batches)."""
+    """Both constants and the angular profiles over every probe texel of the training split (a loader of
+    collated batches). A band no training texel fell in gets 1 (the probe's mean)."""
     total, ratio, n = torch.zeros(3, dtype=torch.float64), torch.zeros(3, dtype=torch.float64), 0
+    band_sum = {k: torch.zeros(PROFILE_BINS, dtype=torch.float64) for k in ViewLighting.KINDS}
+    band_n = {k: torch.zeros(PROFILE_BINS, dtype=torch.float64) for k in ViewLighting.KINDS}
     for batch in loader:
         scale = image_scale(batch["im"]).double()
         for b, light in enumerate(batch.get("light", [])):
@@ -50,21 +80,37 @@ def mean_training_radiance(loader) -> Constants:
                 total += r.sum(0)
                 ratio += r.sum(0) / scale[b]
                 n += len(r)
+                rel = _relative_texels(light.kind(kind))
+                if rel is not None:
+                    band_sum[kind].index_add_(0, rel[0].reshape(-1), rel[1].reshape(-1))
+                    band_n[kind].index_add_(0, rel[0].reshape(-1), torch.ones_like(rel[1].reshape(-1)))
     if n == 0:
         raise ValueError("the training split has no lighting ground truth (run synthesize with lighting)")
-    return Constants((total / n).float(), (ratio / n).float())
+    profile = {k: torch.where(band_n[k] > 0, band_sum[k] / band_n[k].clamp(min=1), 1.0).float() for k in band_sum}
+    return Constants((total / n).float(), (ratio / n).float(), profile)
 
 
-def probe_oracle_light(lights: list[ViewLighting], kind: str, scale: torch.Tensor) -> dict[str, tuple] | None:
-    """{"probe_mean_oracle" | "probe_median_oracle": (pred (M, 3), target (M, 3), scale (M,))} over the
-    batch's probes of `kind` (texels in `probe_rays` order), scale (B,) the image means; None if none."""
-    preds, targets, scales = {"probe_mean_oracle": [], "probe_median_oracle": []}, [], []
+def probe_oracle_light(
+    lights: list[ViewLighting], kind: str, scale: torch.Tensor, profile: torch.Tensor | None = None
+) -> dict[str, tuple] | None:
+    """{"probe_mean_oracle" | "probe_median_oracle" [| "probe_profile_oracle"]: (pred (M, 3), target (M, 3),
+    scale (M,))} over the batch's probes of `kind` (texels in `probe_rays` order), scale (B,) the image
+    means, profile (PROFILE_BINS,) the kind's `Constants.profile` (None: no profile oracle); None if no
+    probes. The profile oracle is renormalised per probe, so its mean over the probe's texels is the
+    probe's true mean."""
+    names = ["probe_mean_oracle", "probe_median_oracle"] + (["probe_profile_oracle"] if profile is not None else [])
+    preds, targets, scales = {name: [] for name in names}, [], []
     for b, light in enumerate(lights):
-        r = light.kind(kind).texels()[1]  # (P, T, 3)
+        d, r = light.kind(kind).texels()  # (P, T, 3) each
         if not len(r):
             continue
-        preds["probe_mean_oracle"].append(r.mean(1, keepdim=True).expand_as(r).reshape(-1, 3))
+        mean = r.mean(1, keepdim=True)
+        preds["probe_mean_oracle"].append(mean.expand_as(r).reshape(-1, 3))
         preds["probe_median_oracle"].append(r.median(1, keepdim=True).values.expand_as(r).reshape(-1, 3))
+        if profile is not None:
+            w = profile.to(r.dtype)[elevation_band(d)]  # (P, T)
+            w = w / w.mean(1, keepdim=True).clamp(min=1e-12)
+            preds["probe_profile_oracle"].append((mean * w[..., None]).reshape(-1, 3))
         targets.append(r.reshape(-1, 3))
         scales.append(scale[b].expand(len(targets[-1])))
     if not targets:
@@ -89,7 +135,7 @@ def baseline_metrics(batch: dict, constants: Constants, system) -> dict[str, flo
         cases = {
             "constant": (constants.constant.expand_as(rays.radiance), rays.radiance, s),
             "scaled_constant": (constants.ratio * s[:, None], rays.radiance, s),
-            **probe_oracle_light(batch["light"], kind, scale),
+            **probe_oracle_light(batch["light"], kind, scale, constants.profile.get(kind)),
         }
         for name, (pred, target, sc) in cases.items():
             out.update({f"{name}/{kind}_{k}": v for k, v in light_errors(pred, target, sc).items()})

@@ -112,6 +112,43 @@ def test_mean_training_radiance_and_its_exposure_ratio():
     c = mean_training_radiance([{"im": im, "light": light}])
     assert torch.allclose(c.constant, torch.full((3,), 5.0))  # (6 texels x 2 + 6 x 8) / 12
     assert torch.allclose(c.ratio, torch.full((3,), 2.0))  # every texel is twice its image's mean
+    for kind in ("surf", "free"):  # uniform probes: every band that saw a texel is at its probe's mean
+        assert torch.allclose(c.profile[kind], torch.ones(8)), kind
+
+
+def _probe_looking(up: list[float], radiance: list[float]) -> Probes:
+    """One probe of 1 x len(up) texels whose centre directions have these view-space up components."""
+    y = torch.tensor(up)
+    d = torch.stack([(1 - y**2).sqrt(), y, torch.zeros_like(y)], -1)
+    r = torch.tensor(radiance)[:, None].expand(-1, 3)
+    return Probes(torch.zeros(1, 3), d[None, None], r[None, None].contiguous(), torch.zeros(1, 3), torch.zeros(1, 2))
+
+
+def test_angular_profile_is_learnt_by_elevation_and_keeps_each_probes_mean():
+    from pipeline.systems.lighting_baselines import PROFILE_BINS, elevation_band, mean_training_radiance
+
+    assert elevation_band(torch.tensor([[0.0, -1.0, 0.0], [0.0, 1.0, 0.0], [1.0, 0.0, 0.0]])).tolist() == [
+        0,
+        PROFILE_BINS - 1,
+        PROFILE_BINS // 2,
+    ]
+    # training: every probe three times as bright above as below (1.5 and 0.5 of its mean)
+    up, down = 0.99, -0.99
+    train = ViewLighting(_probe_looking([up, down], [3.0, 1.0]), _probe_looking([up, down], [6.0, 2.0]))
+    c = mean_training_radiance([{"im": torch.ones(1, 3, 2, 2), "light": [train]}])
+    torch.testing.assert_close(c.profile["surf"][[0, -1]], torch.tensor([0.5, 1.5]))  # 1/2 and 3/2 of the mean
+    torch.testing.assert_close(c.profile["surf"][1:-1], torch.ones(PROFILE_BINS - 2))  # unseen bands: the mean
+    # a test probe at another energy: the oracle predicts its true mean, split 1 : 3 between floor and sky
+    test = ViewLighting(_probe_looking([down, up], [10.0, 30.0]), _probe_looking([up], [4.0]))
+    from pipeline.systems.lighting_baselines import probe_oracle_light
+
+    out = probe_oracle_light([test], "surf", torch.tensor([1.0]), c.profile["surf"])
+    pred, target, _ = out["probe_profile_oracle"]
+    torch.testing.assert_close(pred[:, 0], torch.tensor([10.0, 30.0]))  # exact: the shape it was taught
+    torch.testing.assert_close(pred.mean(0), target.mean(0))
+    one_texel = probe_oracle_light([test], "free", torch.tensor([1.0]), c.profile["free"])
+    torch.testing.assert_close(one_texel["probe_profile_oracle"][0], torch.full((1, 3), 4.0))
+    assert "probe_profile_oracle" not in probe_oracle_light([test], "surf", torch.tensor([1.0]))
 
 
 def test_ray_classes_partition_every_ray_by_hit_and_confidence():

@@ -77,6 +77,7 @@ def test_stage_reports_mode_metrics_and_baselines(micro_shards, tmp_path):
         "baseline/scaled_constant/free_light_relmse",
         "baseline/probe_mean_oracle/surf_light_nmse",
         "baseline/probe_median_oracle/free_light_log_l1",
+        "baseline/probe_profile_oracle/surf_light_nmse",
         "baseline/gt_probes/render_psnr_at_probes",
         "baseline/model/render_psnr_at_probes",
         "mixed/val/render_psnr_before_training",
