@@ -58,12 +58,16 @@ def elevation_band(directions: torch.Tensor) -> torch.Tensor:
 
 
 def _relative_texels(probes) -> tuple[torch.Tensor, torch.Tensor] | None:
-    """(band (P, T), radiance over its probe's mean, averaged over RGB (P, T)) of one kind's probes."""
+    """(band (N,), radiance over its probe's mean (N,)) for the N texels of one kind's probes, each
+    channel divided by that channel's probe mean and then averaged over RGB, so a tinted probe shapes the
+    profile as a grey one does. A probe with a black channel has no shape to learn and is left out."""
     d, r = probes.texels()
-    if not len(r):
+    mean = r.double().mean(1, keepdim=True)  # (P, 1, 3)
+    lit = (mean > 0).all(-1).squeeze(1)  # (P,)
+    if not lit.any():
         return None
-    mean = r.double().mean(1, keepdim=True).clamp(min=1e-12)
-    return elevation_band(d), (r.double() / mean).mean(-1)
+    rel = (r.double()[lit] / mean[lit]).mean(-1)
+    return elevation_band(d[lit]).reshape(-1), rel.reshape(-1)
 
 
 def mean_training_radiance(loader) -> Constants:
@@ -82,8 +86,8 @@ def mean_training_radiance(loader) -> Constants:
                 n += len(r)
                 rel = _relative_texels(light.kind(kind))
                 if rel is not None:
-                    band_sum[kind].index_add_(0, rel[0].reshape(-1), rel[1].reshape(-1))
-                    band_n[kind].index_add_(0, rel[0].reshape(-1), torch.ones_like(rel[1].reshape(-1)))
+                    band_sum[kind].index_add_(0, rel[0], rel[1])
+                    band_n[kind].index_add_(0, rel[0], torch.ones_like(rel[1]))
     if n == 0:
         raise ValueError("the training split has no lighting ground truth (run synthesize with lighting)")
     profile = {k: torch.where(band_n[k] > 0, band_sum[k] / band_n[k].clamp(min=1), 1.0).float() for k in band_sum}
@@ -108,7 +112,9 @@ def probe_oracle_light(
         preds["probe_mean_oracle"].append(mean.expand_as(r).reshape(-1, 3))
         preds["probe_median_oracle"].append(r.median(1, keepdim=True).values.expand_as(r).reshape(-1, 3))
         if profile is not None:
-            w = profile.to(r.dtype)[elevation_band(d)]  # (P, T)
+            w = profile.to(r)[elevation_band(d)]  # (P, T)
+            # a hemisphere sees only some bands (a floor's only the upper ones), so the profile's mean over
+            # its texels is not 1: rescale, so the probe keeps its true mean and only the shape is the prior
             w = w / w.mean(1, keepdim=True).clamp(min=1e-12)
             preds["probe_profile_oracle"].append((mean * w[..., None]).reshape(-1, 3))
         targets.append(r.reshape(-1, 3))

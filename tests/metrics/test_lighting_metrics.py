@@ -113,41 +113,64 @@ def test_mean_training_radiance_and_its_exposure_ratio():
     assert torch.allclose(c.constant, torch.full((3,), 5.0))  # (6 texels x 2 + 6 x 8) / 12
     assert torch.allclose(c.ratio, torch.full((3,), 2.0))  # every texel is twice its image's mean
     for kind in ("surf", "free"):  # uniform probes: every band that saw a texel is at its probe's mean
-        assert torch.allclose(c.profile[kind], torch.ones(8)), kind
+        assert torch.allclose(c.profile[kind], torch.ones_like(c.profile[kind])), kind
 
 
-def _probe_looking(up: list[float], radiance: list[float]) -> Probes:
-    """One probe of 1 x len(up) texels whose centre directions have these view-space up components."""
+def _probes_looking(up: list[float], radiance: list[list[float]]) -> Probes:
+    """P probes of 1 x T texels (radiance (P, T) grey) whose centre directions have the T view-space up
+    components `up`."""
     y = torch.tensor(up)
     d = torch.stack([(1 - y**2).sqrt(), y, torch.zeros_like(y)], -1)
-    r = torch.tensor(radiance)[:, None].expand(-1, 3)
-    return Probes(torch.zeros(1, 3), d[None, None], r[None, None].contiguous(), torch.zeros(1, 3), torch.zeros(1, 2))
+    r = torch.tensor(radiance, dtype=torch.float32).reshape(-1, len(up))[..., None].expand(-1, -1, 3)
+    P = len(r)
+    return Probes(torch.zeros(P, 3), d.expand(P, 1, -1, 3).contiguous(), r[:, None].contiguous(), torch.zeros(P, 3))
 
 
-def test_angular_profile_is_learnt_by_elevation_and_keeps_each_probes_mean():
+def test_angular_profile_is_learnt_by_elevation_per_probe_and_kind():
     from pipeline.systems.lighting_baselines import PROFILE_BINS, elevation_band, mean_training_radiance
 
-    assert elevation_band(torch.tensor([[0.0, -1.0, 0.0], [0.0, 1.0, 0.0], [1.0, 0.0, 0.0]])).tolist() == [
-        0,
-        PROFILE_BINS - 1,
-        PROFILE_BINS // 2,
-    ]
-    # training: every probe three times as bright above as below (1.5 and 0.5 of its mean)
-    up, down = 0.99, -0.99
-    train = ViewLighting(_probe_looking([up, down], [3.0, 1.0]), _probe_looking([up, down], [6.0, 2.0]))
-    c = mean_training_radiance([{"im": torch.ones(1, 3, 2, 2), "light": [train]}])
-    torch.testing.assert_close(c.profile["surf"][[0, -1]], torch.tensor([0.5, 1.5]))  # 1/2 and 3/2 of the mean
-    torch.testing.assert_close(c.profile["surf"][1:-1], torch.ones(PROFILE_BINS - 2))  # unseen bands: the mean
-    # a test probe at another energy: the oracle predicts its true mean, split 1 : 3 between floor and sky
-    test = ViewLighting(_probe_looking([down, up], [10.0, 30.0]), _probe_looking([up], [4.0]))
-    from pipeline.systems.lighting_baselines import probe_oracle_light
+    y = torch.tensor([-1.0, 1.0, 0.0, 0.5, -0.5])
+    d = torch.stack([(1 - y**2).sqrt(), y, torch.zeros_like(y)], -1)
+    assert PROFILE_BINS == 8
+    assert elevation_band(d).tolist() == [0, 7, 4, 6, 2]  # equal solid angle: uniform in y, not in angle
+    up, mid, down = 0.99, 0.1, -0.99
+    # surface: probe A 3x brighter above than below, probe B (10x the energy) 3x brighter at the horizon
+    # than above; each texel counts relative to its own probe's mean, so B's energy does not outweigh A
+    surf = _probes_looking([up, down], [[3.0, 1.0]])
+    surf_b = _probes_looking([up, mid], [[10.0, 30.0]])
+    # free points: the other way round, plus a black probe, which has no shape and is left out
+    free = _probes_looking([up, down], [[1.0, 3.0], [0.0, 0.0]])
+    c = mean_training_radiance(
+        [
+            {
+                "im": torch.ones(2, 3, 2, 2),
+                "light": [ViewLighting(surf, free), ViewLighting(surf_b, _probes_looking([up], []))],
+            }
+        ]
+    )
+    expect_surf = torch.ones(PROFILE_BINS)
+    expect_surf[[0, 4, 7]] = torch.tensor([0.5, 1.5, 1.0])  # top band: A's 1.5 and B's 0.5
+    torch.testing.assert_close(c.profile["surf"], expect_surf)  # unseen bands: the probe's mean (1)
+    expect_free = torch.ones(PROFILE_BINS)
+    expect_free[[0, 7]] = torch.tensor([1.5, 0.5])
+    torch.testing.assert_close(c.profile["free"], expect_free)
 
-    out = probe_oracle_light([test], "surf", torch.tensor([1.0]), c.profile["surf"])
-    pred, target, _ = out["probe_profile_oracle"]
-    torch.testing.assert_close(pred[:, 0], torch.tensor([10.0, 30.0]))  # exact: the shape it was taught
-    torch.testing.assert_close(pred.mean(0), target.mean(0))
-    one_texel = probe_oracle_light([test], "free", torch.tensor([1.0]), c.profile["free"])
-    torch.testing.assert_close(one_texel["probe_profile_oracle"][0], torch.full((1, 3), 4.0))
+
+def test_profile_oracle_keeps_each_probes_true_mean():
+    from pipeline.systems.lighting_baselines import PROFILE_BINS, probe_oracle_light
+
+    profile = torch.ones(PROFILE_BINS)
+    profile[[0, 4, 7]] = torch.tensor([0.5, 1.5, 1.0])
+    up, mid, down = 0.99, 0.1, -0.99
+    # a probe shaped as taught is predicted exactly; one that sees only the upper bands (as a floor's
+    # hemisphere does) is renormalised so its mean is still the probe's own
+    test = ViewLighting(
+        _probes_looking([down, up, mid], [[1.0, 2.0, 3.0]]), _probes_looking([up, mid], [[4.0, 6.0], [1.0, 1.0]])
+    )
+    pred, target, _ = probe_oracle_light([test], "surf", torch.tensor([1.0]), profile)["probe_profile_oracle"]
+    torch.testing.assert_close(pred[:, 0], torch.tensor([1.0, 2.0, 3.0]))
+    pred, target, _ = probe_oracle_light([test], "free", torch.tensor([1.0]), profile)["probe_profile_oracle"]
+    torch.testing.assert_close(pred[:, 0], torch.tensor([4.0, 6.0, 0.8, 1.2]))  # weights 1 : 1.5, mean kept
     assert "probe_profile_oracle" not in probe_oracle_light([test], "surf", torch.tensor([1.0]))
 
 
