@@ -42,6 +42,7 @@ def build_system(cfg: DictConfig) -> LightingSystem:
         render_weight=float(lt.render_weight),
         light_weight=float(lt.light_weight),
         light_loss=str(lt.light_loss),
+        nmse_weight=float(lt.nmse_weight),
         eval_stride=int(lt.eval_stride),
         optimizer=instantiate(cfg.optim.optimizer),
         scheduler=instantiate(sched) if sched is not None else None,

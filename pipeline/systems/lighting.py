@@ -25,7 +25,7 @@ from pipeline.models.material_net import MaterialNet
 from pipeline.models.render_layer import MCRenderLayer
 from pipeline.ops.camera import grid_pixels, pixel_values
 from pipeline.systems.lighting_baselines import baseline_metrics
-from pipeline.systems.losses import LIGHT_LOSSES
+from pipeline.systems.losses import LIGHT_LOSSES, light_nmse_loss
 
 QUERY_CHUNK = 8192  # LightNet queries per forward at evaluation (bounds memory)
 
@@ -60,6 +60,7 @@ class LightingSystem(L.LightningModule):
         render_weight: float = 1.0,
         light_weight: float = 1.0,
         light_loss: str = "relative_mse",
+        nmse_weight: float = 0.0,
         eval_stride: int = 4,
         optimizer: Callable | None = None,
         scheduler: Callable | None = None,
@@ -86,6 +87,9 @@ class LightingSystem(L.LightningModule):
         if light_loss not in LIGHT_LOSSES:
             raise ValueError(f"lighting.light_loss={light_loss!r}: choose one of {tuple(LIGHT_LOSSES)}")
         self.light_loss = LIGHT_LOSSES[light_loss]
+        if not nmse_weight >= 0:
+            raise ValueError(f"lighting.nmse_weight={nmse_weight}: must be >= 0")
+        self.nmse_weight = float(nmse_weight)  # the normalised-MSE term beside the light loss (0: off)
         self.optimizer_fn, self.scheduler_fn = optimizer, scheduler
         self.generator = torch.Generator().manual_seed(int(seed))
         self.baselines = None  # lighting_baselines.Constants, set by the stage before testing
@@ -174,17 +178,23 @@ class LightingSystem(L.LightningModule):
             for kind, n in (("surf", self.probes), ("free", self.free_probes))
         ]
         rays = ProbeRays.cat([p for p in parts if p is not None])
-        if rays is not None and self.light_weight > 0:
+        if rays is not None and (self.light_weight > 0 or self.nmse_weight > 0):
             rays = rays.to(self.device)
             pred = self.query(ctx, gb, fov, rays, self.generator)["radiance"]
             losses["light"] = self.light_loss(pred, rays.radiance, scale[rays.image])
+            if self.nmse_weight > 0:
+                losses["light_nmse"] = light_nmse_loss(pred, rays.radiance, scale[rays.image])
         pix = self.sample_pixels(batch["mask"][:, 0], self.pixels)
         rgb, b = self.train_layer.render_pixels(
             gb, fov, pix, self.light_fn(ctx, gb, fov, self.generator), self.generator
         )
         target = pixel_values(batch["im"], pix)
         losses["render"] = (((rgb - target) / scale[b, None]) ** 2).mean()
-        total = self.light_weight * losses.get("light", 0.0) + self.render_weight * losses["render"]
+        total = (
+            self.light_weight * losses.get("light", 0.0)
+            + self.nmse_weight * losses.get("light_nmse", 0.0)
+            + self.render_weight * losses["render"]
+        )
         bs = batch["im"].shape[0]
         self.log("train/loss", total, prog_bar=True, on_step=True, on_epoch=True, batch_size=bs, sync_dist=True)
         for k, v in losses.items():

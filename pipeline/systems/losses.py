@@ -12,7 +12,7 @@ import torch
 from torch import nn
 from torch.nn import functional as F
 
-from pipeline.metrics.lighting import log_l1
+from pipeline.metrics.lighting import log_l1, normalised_mse
 from pipeline.metrics.synthetic import depth_mask, ls_scale
 
 
@@ -244,3 +244,12 @@ def hdr_log_l1_loss(pred: torch.Tensor, target: torch.Tensor, scale: torch.Tenso
 
 
 LIGHT_LOSSES = {"relative_mse": hdr_relative_loss, "log_l1": hdr_log_l1_loss}  # lighting.light_loss
+
+
+def light_nmse_loss(pred: torch.Tensor, target: torch.Tensor, scale: torch.Tensor) -> torch.Tensor:
+    """sum (L^ - L)^2 / sum L^2 over the step's texels, radiance (M, 3) in units of each sample's image
+    mean s (M,): the reported normalised MSE as a loss term (`lighting.nmse_weight`). The brightest
+    texels (lamps, sun) carry it, so it asks where each probe's energy is, which the log-L1 loss, whose
+    fixed point is the median, does not; per texel its fixed point is the conditional mean."""
+    s = scale[:, None]
+    return normalised_mse(pred / s, target / s)

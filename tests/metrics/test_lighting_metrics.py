@@ -90,6 +90,44 @@ def test_log_l1_loss_is_the_metric_and_stationary_at_the_median():
             assert bool((torch.sign(total) == sign).all())
 
 
+def test_nmse_loss_is_the_metric_per_image_exposure_and_stationary_at_the_mean():
+    from pipeline.systems.losses import light_nmse_loss
+
+    g = torch.Generator().manual_seed(2)
+    target = torch.rand(64, 3, generator=g, dtype=torch.float64) ** 4 * 10
+    pred = torch.rand(64, 3, generator=g, dtype=torch.float64)
+    scale = torch.where(torch.arange(64) < 32, 0.3, 2.0).to(torch.float64)  # two images, two exposures
+    a = light_nmse_loss(pred, target, scale)
+    s = scale[:, None]
+    assert torch.allclose(a, normalised_mse(pred / s, target / s))
+    # in units of each image's mean: a brighter exposure of one image leaves the loss as it is
+    brighter = torch.where(torch.arange(64)[:, None] < 32, 5.0, 1.0).to(torch.float64)
+    assert torch.allclose(light_nmse_loss(pred * brighter, target * brighter, scale * brighter[:, 0]), a)
+    # one shared prediction per channel (one exposure): the gradient vanishes at the mean only
+    one = torch.full((64,), 0.3, dtype=torch.float64)
+    for value, sign in ((target.mean(0), 0.0), (target.mean(0) * 1.5, 1.0), (target.mean(0) * 0.5, -1.0)):
+        c = value.expand(64, 3).clone().requires_grad_(True)
+        light_nmse_loss(c, target, one).backward()
+        total = c.grad.sum(0)
+        if sign == 0.0:
+            assert torch.allclose(total, torch.zeros(3, dtype=torch.float64), atol=1e-12)
+        else:
+            assert bool((torch.sign(total) == sign).all())
+
+
+def test_nmse_weight_is_checked():
+    from pipeline.systems.lighting import LightingSystem
+
+    with pytest.raises(ValueError, match="nmse_weight"):
+        LightingSystem(
+            light_net={},
+            material=None,
+            render={"estimator": "importance", "spp": 1, "eval_spp": 1, "seed": 0},
+            gbuffers="ground_truth",
+            nmse_weight=-1.0,
+        )
+
+
 def test_light_loss_choice_is_checked():
     from pipeline.systems.lighting import LightingSystem
 
