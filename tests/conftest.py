@@ -60,7 +60,11 @@ def run_stage_process(stage: str, args: list[str], cwd: Path) -> str:
 
 
 def compose_cfg(name: str, overrides: list[str] | None = None):
-    """Compose `conf/<name>.yaml` with overrides (Hydra Compose API, no working-dir change)."""
+    """Compose `conf/<name>.yaml` with overrides (Hydra Compose API, no working-dir change). Importing
+    `pipeline.tracking` registers the `${job_dir:...}` resolver, as every stage does, so a test file that
+    only composes configs resolves them when run on its own."""
+    import pipeline.tracking  # noqa: F401
+
     with initialize_config_dir(config_dir=str(CONF), version_base="1.3"):
         return compose(config_name=name, overrides=list(overrides or []))
 
