@@ -68,6 +68,20 @@ def test_relative_mse_loss_is_exposure_invariant_and_stationary_at_the_mean():
     assert abs(float(c.grad.sum())) < 1e-9
 
 
+def _assert_fixed_point(loss_fn, centre: torch.Tensor, target: torch.Tensor, scale: torch.Tensor) -> None:
+    """One prediction per channel shared by every sample, (3,): the loss's (sub)gradient summed over the
+    samples is zero at `centre` and pulls towards it from 1.5x and 0.5x of it."""
+    n = target.shape[0]
+    for value, sign in ((centre, 0.0), (centre * 1.5, 1.0), (centre * 0.5, -1.0)):
+        c = value.expand(n, 3).clone().requires_grad_(True)
+        loss_fn(c, target, scale).backward()
+        total = c.grad.sum(0)
+        if sign == 0.0:
+            assert torch.allclose(total, torch.zeros(3, dtype=torch.float64), atol=1e-12)
+        else:
+            assert bool((torch.sign(total) == sign).all())
+
+
 def test_log_l1_loss_is_the_metric_and_stationary_at_the_median():
     from pipeline.systems.losses import hdr_log_l1_loss
 
@@ -79,15 +93,7 @@ def test_log_l1_loss_is_the_metric_and_stationary_at_the_median():
     assert torch.allclose(a, log_l1(pred, target, scale))
     assert torch.allclose(hdr_log_l1_loss(pred * 7, target * 7, scale * 7), a)
     # one shared prediction per channel: zero subgradient at the median, a net pull towards it elsewhere
-    median = target.median(0).values
-    for value, sign in ((median, 0.0), (median * 1.5, 1.0), (median * 0.5, -1.0)):
-        c = value.expand(63, 3).clone().requires_grad_(True)
-        hdr_log_l1_loss(c, target, scale).backward()
-        total = c.grad.sum(0)
-        if sign == 0.0:
-            assert torch.allclose(total, torch.zeros(3, dtype=torch.float64), atol=1e-12)
-        else:
-            assert bool((torch.sign(total) == sign).all())
+    _assert_fixed_point(hdr_log_l1_loss, target.median(0).values, target, scale)
 
 
 def test_nmse_loss_is_the_metric_per_image_exposure_and_stationary_at_the_mean():
@@ -104,40 +110,23 @@ def test_nmse_loss_is_the_metric_per_image_exposure_and_stationary_at_the_mean()
     brighter = torch.where(torch.arange(64)[:, None] < 32, 5.0, 1.0).to(torch.float64)
     assert torch.allclose(light_nmse_loss(pred * brighter, target * brighter, scale * brighter[:, 0]), a)
     # one shared prediction per channel (one exposure): the gradient vanishes at the mean only
-    one = torch.full((64,), 0.3, dtype=torch.float64)
-    for value, sign in ((target.mean(0), 0.0), (target.mean(0) * 1.5, 1.0), (target.mean(0) * 0.5, -1.0)):
-        c = value.expand(64, 3).clone().requires_grad_(True)
-        light_nmse_loss(c, target, one).backward()
-        total = c.grad.sum(0)
-        if sign == 0.0:
-            assert torch.allclose(total, torch.zeros(3, dtype=torch.float64), atol=1e-12)
-        else:
-            assert bool((torch.sign(total) == sign).all())
+    _assert_fixed_point(light_nmse_loss, target.mean(0), target, torch.full((64,), 0.3, dtype=torch.float64))
 
 
-def test_nmse_weight_is_checked():
+@pytest.mark.parametrize(
+    "bad, message",
+    [({"light_loss": "l2"}, "lighting.light_loss"), ({"nmse_weight": -1.0}, "lighting.nmse_weight")],
+)
+def test_light_loss_settings_are_checked(bad, message):
     from pipeline.systems.lighting import LightingSystem
 
-    with pytest.raises(ValueError, match="nmse_weight"):
+    with pytest.raises(ValueError, match=message):
         LightingSystem(
             light_net={},
             material=None,
             render={"estimator": "importance", "spp": 1, "eval_spp": 1, "seed": 0},
             gbuffers="ground_truth",
-            nmse_weight=-1.0,
-        )
-
-
-def test_light_loss_choice_is_checked():
-    from pipeline.systems.lighting import LightingSystem
-
-    with pytest.raises(ValueError, match="lighting.light_loss"):
-        LightingSystem(
-            light_net={},
-            material=None,
-            render={"estimator": "importance", "spp": 1, "eval_spp": 1, "seed": 0},
-            gbuffers="ground_truth",
-            light_loss="l2",
+            **bad,
         )
 
 
