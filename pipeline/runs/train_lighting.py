@@ -20,7 +20,7 @@ from pipeline.models.material_net import load_material_export
 from pipeline.systems.lighting import LightingSystem
 from pipeline.systems.lighting_baselines import mean_training_radiance
 from pipeline.systems.lighting_figures import lighting_figures
-from pipeline.systems.trainer import resume_checkpoint, stage_trainer
+from pipeline.systems.trainer import epoch_checkpoints, resume_checkpoint, stage_trainer
 from pipeline.tracking import publish, stage_run
 
 
@@ -69,7 +69,6 @@ def test_scores(system: LightingSystem, loader) -> dict[str, float]:
 def run(cfg: DictConfig) -> dict[str, float]:
     import lightning as L
     import mlflow
-    from lightning.pytorch.callbacks import ModelCheckpoint
 
     L.seed_everything(int(cfg.seed), workers=True, verbose=False)
     system = build_system(cfg)
@@ -83,10 +82,10 @@ def run(cfg: DictConfig) -> dict[str, float]:
     tags = {"data_source": source, "mode": mode, "render": str(cfg.render.estimator)}
     resume, resume_run_id = resume_checkpoint(cfg.resume, out / "checkpoints")
     with stage_run("train_lighting", cfg, tags=tags, resume_run_id=resume_run_id) as run:
-        ckpt = ModelCheckpoint(
-            dirpath=out / "checkpoints", filename="best", monitor="val/render_psnr", mode="max", save_last=True
+        ckpt, last_ckpt = epoch_checkpoints(out / "checkpoints", "val/render_psnr", "max")
+        trainer = stage_trainer(
+            run, OmegaConf.to_container(cfg.trainer, resolve=True), out, [ckpt, last_ckpt], bool(cfg.progress)
         )
-        trainer = stage_trainer(run, OmegaConf.to_container(cfg.trainer, resolve=True), out, [ckpt], bool(cfg.progress))
         # the first validation pass (before any training step) records the starting re-render PSNR; a
         # resumed run repeats it on the same seeded initialisation, so it reports the same number
         start = trainer.validate(system, datamodule=dm, verbose=False)[0] if cfg.lighting.validate_before else None

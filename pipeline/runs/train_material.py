@@ -19,7 +19,7 @@ from pipeline.models.export import save_material_export
 from pipeline.models.material_net import parameter_count
 from pipeline.systems.material import METRICS, MaterialSystem
 from pipeline.systems.material_baselines import MaterialBaselines, accuracy_gate
-from pipeline.systems.trainer import resume_checkpoint, stage_trainer
+from pipeline.systems.trainer import epoch_checkpoints, resume_checkpoint, stage_trainer
 from pipeline.tracking import publish, stage_run
 from pipeline.tracking.figures import map_comparison
 
@@ -68,7 +68,6 @@ def build_datamodule(cfg: DictConfig) -> InteriorVerseDataModule:
 def run(cfg: DictConfig) -> dict[str, float]:
     import lightning as L
     import mlflow
-    from lightning.pytorch.callbacks import ModelCheckpoint
 
     L.seed_everything(int(cfg.seed), workers=True, verbose=False)
     out, report = Path(cfg.out_dir), Path(cfg.report_dir)
@@ -86,10 +85,12 @@ def run(cfg: DictConfig) -> dict[str, float]:
             mlflow.log_params(
                 {"loss.perceptual_on": system.loss.perceptual_on, "model.parameters": parameter_count(system.net)}
             )
-        ckpt = ModelCheckpoint(dirpath=ckpt_dir, filename="best", monitor="val/loss", mode="min", save_last=True)
-        trainer = stage_trainer(run, OmegaConf.to_container(cfg.trainer, resolve=True), out, [ckpt], bool(cfg.progress))
+        ckpt, last_ckpt = epoch_checkpoints(ckpt_dir, "val/loss", "min")
+        trainer = stage_trainer(
+            run, OmegaConf.to_container(cfg.trainer, resolve=True), out, [ckpt, last_ckpt], bool(cfg.progress)
+        )
         trainer.fit(system, datamodule=dm, ckpt_path=resume, weights_only=True)
-        best = ckpt.best_model_path or ckpt.last_model_path
+        best = ckpt.best_model_path or last_ckpt.best_model_path
         state = torch.load(best, map_location="cpu", weights_only=True)["state_dict"]
         system.load_state_dict(state)
         system.baselines = baselines
