@@ -2,7 +2,7 @@
 on the test split beside content-blind baselines and oracles (`systems.lighting_baselines`).
 
 Writes under `out_dir`: checkpoints/best.ckpt and last.ckpt (Lightning), model.pt (the LightNet export
-with the best validated weights); under `report_dir`: metrics.json, rerender.png, envmaps.png.
+with the weights `test_weights` names); under `report_dir`: metrics.json, rerender.png, envmaps.png.
 """
 
 from __future__ import annotations
@@ -22,6 +22,8 @@ from pipeline.systems.lighting_baselines import mean_training_radiance
 from pipeline.systems.lighting_figures import lighting_figures
 from pipeline.systems.trainer import epoch_checkpoints, resume_checkpoint, stage_trainer
 from pipeline.tracking import publish, stage_run
+
+TEST_WEIGHTS = ("last", "best")  # `test_weights`: the last epoch's, or the best validated re-render's
 
 
 def build_system(cfg: DictConfig) -> LightingSystem:
@@ -70,6 +72,8 @@ def run(cfg: DictConfig) -> dict[str, float]:
     import lightning as L
     import mlflow
 
+    if cfg.test_weights not in TEST_WEIGHTS:
+        raise ValueError(f"test_weights={cfg.test_weights!r}: choose one of {TEST_WEIGHTS}")
     L.seed_everything(int(cfg.seed), workers=True, verbose=False)
     system = build_system(cfg)
     dm = InteriorVerseDataModule(cfg.data_dir, batch_size=int(cfg.batch_size), seed=int(cfg.seed), lighting=True)
@@ -95,10 +99,16 @@ def run(cfg: DictConfig) -> dict[str, float]:
             last = float(trainer.callback_metrics["val/render_psnr"])
         else:
             last = float(trainer.validate(system, datamodule=dm, verbose=False)[0]["val/render_psnr"])
-        # model selection on validation: the light loss's rare huge terms make late steps jumpy, so the
-        # test split, the baselines' model row and model.pt use the best validated weights
+        # test_weights=best: the test split, the baselines' model row and model.pt use the best validated
+        # re-render instead of the last epoch (for a constant rate, whose late epochs jump; with the cosine
+        # schedule the best re-render is often an early epoch with the worst light errors)
         chosen, after = "last", last
-        if ckpt.best_model_path and ckpt.best_model_score is not None and float(ckpt.best_model_score) > last:
+        if (
+            cfg.test_weights == "best"
+            and ckpt.best_model_path
+            and ckpt.best_model_score is not None
+            and float(ckpt.best_model_score) > last
+        ):
             best = torch.load(ckpt.best_model_path, map_location="cpu", weights_only=True)
             system.load_state_dict(best["state_dict"])
             chosen, after = f"best (epoch {best['epoch']})", float(ckpt.best_model_score)

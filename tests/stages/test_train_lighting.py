@@ -65,10 +65,14 @@ def test_every_light_net_option_takes_a_training_step(micro_shards, tmp_path, op
     assert grads and all(torch.isfinite(g).all() for g in grads)
 
 
-def test_stage_reports_mode_metrics_and_baselines(micro_shards, tmp_path):
+@pytest.mark.parametrize("test_weights", ["last", "best"])
+def test_stage_reports_mode_metrics_and_baselines(micro_shards, tmp_path, test_weights):
     from stages import train_lighting
 
-    metrics = train_lighting.run(_cfg(micro_shards, tmp_path, "lighting.pixels=16", "lighting.eval_stride=8"))
+    overrides = ["lighting.pixels=16", "lighting.eval_stride=8", f"test_weights={test_weights}"]
+    if test_weights == "best":  # two epochs, so that there is an earlier epoch to choose
+        overrides.append("trainer.max_epochs=2")
+    metrics = train_lighting.run(_cfg(micro_shards, tmp_path, *overrides))
     for key in (
         "mixed/test/surf_light_relmse",
         "mixed/test/render_psnr",
@@ -96,13 +100,22 @@ def test_stage_reports_mode_metrics_and_baselines(micro_shards, tmp_path):
     assert (tmp_path / "outputs" / "train_lighting" / "model.pt").is_file()
     for name in ("metrics.json", "rerender.png", "envmaps.png"):
         assert (tmp_path / "reports" / "train_lighting" / name).is_file(), name
-    # model.pt holds the weights the test split was scored with: the best validated checkpoint's when it
-    # beat the last epoch, else the last epoch's
+    # model.pt holds the weights the test split was scored with: the last epoch's, or with test_weights=best
+    # the best validated checkpoint's when it beat the last epoch
     from pipeline.models.light_net import load_light_export
 
     ckpts = tmp_path / "outputs" / "train_lighting" / "checkpoints"
     chosen = metrics["mixed/val/render_psnr_after_training"] > metrics["mixed/val/render_psnr_last_epoch"]
+    assert chosen or metrics["mixed/val/render_psnr_after_training"] == metrics["mixed/val/render_psnr_last_epoch"]
+    assert not chosen or test_weights == "best"
     state = torch.load(ckpts / ("best.ckpt" if chosen else "last.ckpt"), weights_only=True)["state_dict"]
     net, _ = load_light_export(tmp_path / "outputs" / "train_lighting" / "model.pt")
     for k, v in net.state_dict().items():
         assert torch.equal(v, state[f"net.{k}"]), k
+
+
+def test_unknown_test_weights_are_refused_by_name(micro_shards, tmp_path):
+    from stages import train_lighting
+
+    with pytest.raises(ValueError, match="test_weights='newest'"):
+        train_lighting.run(_cfg(micro_shards, tmp_path, "test_weights=newest"))
