@@ -35,14 +35,17 @@ def resume_checkpoint(resume: str | None, ckpt_dir: str | Path) -> tuple[str | N
 
 def epoch_checkpoints(ckpt_dir: str | Path, monitor: str, mode: str):
     """(best, last): Lightning checkpoint callbacks writing `<ckpt_dir>/best.ckpt` (the best `monitor`
-    value so far, `mode` "min" or "max") and `<ckpt_dir>/last.ckpt` (the end of every epoch). The path of
+    value so far, `mode` "min" or "max") and `<ckpt_dir>/last.ckpt` (the end of every training epoch,
+    whether or not it validated). The path of
     each file is its callback's `best_model_path`. Lightning's own `save_last` rewrites last.ckpt only in
     an epoch that also rewrote best.ckpt, so after an epoch without improvement last.ckpt held older
     weights and `resume=last` trained those epochs again."""
     from lightning.pytorch.callbacks import ModelCheckpoint
 
     best = ModelCheckpoint(dirpath=ckpt_dir, filename="best", monitor=monitor, mode=mode, enable_version_counter=False)
-    last = ModelCheckpoint(dirpath=ckpt_dir, filename="last", save_top_k=1, enable_version_counter=False)
+    last = ModelCheckpoint(
+        dirpath=ckpt_dir, filename="last", save_top_k=1, enable_version_counter=False, save_on_train_epoch_end=True
+    )
     return best, last
 
 

@@ -42,3 +42,21 @@ def test_last_checkpoint_is_the_last_epoch_after_epochs_without_improvement(tmp_
     assert saved["best"]["epoch"] == 0 and best.best_model_path.endswith("best.ckpt")
     assert saved["last"]["epoch"] == EPOCHS - 1 and saved["last"]["global_step"] == 2 * EPOCHS
     assert last.best_model_path.endswith("last.ckpt")
+
+
+def test_last_checkpoint_follows_unvalidated_epochs_and_resumes(tmp_path):
+    # validation every second epoch: epochs 0 and 2 end without one, and last.ckpt must still follow them
+    ckpt_dir = tmp_path / "checkpoints"
+
+    def fit(max_epochs, ckpt_path=None):
+        best, last = epoch_checkpoints(ckpt_dir, "val/score", "min")
+        trainer = stage_trainer(
+            None, {"max_epochs": max_epochs, "check_val_every_n_epoch": 2}, tmp_path, [best, last], progress=False
+        )
+        trainer.fit(WorseningModule(), ckpt_path=ckpt_path, weights_only=True)
+        return {name: torch.load(ckpt_dir / f"{name}.ckpt", weights_only=True)["epoch"] for name in ("best", "last")}
+
+    assert fit(3) == {"best": 1, "last": 2}
+    # resumed from last.ckpt (epoch 2 done): two more epochs, the best still the first validated one
+    assert fit(5, ckpt_path=str(ckpt_dir / "last.ckpt")) == {"best": 1, "last": 4}
+    assert sorted(p.name for p in ckpt_dir.iterdir()) == ["best.ckpt", "last.ckpt"]
