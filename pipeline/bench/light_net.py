@@ -233,15 +233,31 @@ class _CountingLightNet(LightNet):
         return out
 
 
-def _threshold_row(t: float, blob: dict, material: dict, dm) -> dict:
+def system_from_export(blob: dict, material: dict, net_cls=LightNet, **overrides):
+    """A LightingSystem in eval mode holding the exported LightNet (`blob`, its options updated by
+    `overrides`, built as `net_cls`) on the frozen MaterialNet's G-buffers (`material`), with the render
+    settings of conf/render/importance.yaml: the model as `train_lighting` tests it."""
     from pipeline.systems.lighting import LightingSystem
 
-    cfg = {**blob["light_net"], "mode": "mixed", "out_threshold": t}
+    cfg = {**blob["light_net"], **overrides}
     render = {"estimator": "importance", "spp": 8, "eval_spp": 16, "seed": 0}  # conf/render/importance.yaml
     system = LightingSystem(light_net=cfg, material=material, render=render, gbuffers="predicted")
-    system.net = _CountingLightNet(**cfg)
+    system.net = net_cls(**cfg)
     system.net.load_state_dict(blob["state_dict"])
-    system.eval()
+    return system.eval()
+
+
+def evaluation_system(model_path, material_path):
+    """`system_from_export` of the LightNet export at model_path and the MaterialNet export at material_path."""
+    from pipeline.models.export import read_export
+    from pipeline.models.material_net import load_material_export
+
+    _, material = load_material_export(material_path)
+    return system_from_export(read_export(model_path, "invrender.light_net/1"), material)
+
+
+def _threshold_row(t: float, blob: dict, material: dict, dm) -> dict:
+    system = system_from_export(blob, material, _CountingLightNet, mode="mixed", out_threshold=t)
     acc = [system.evaluate_batch(batch) for batch in dm.plain_loader("test")]
     row = {k: sum(r[k] for r in acc) / len(acc) for k in acc[0]}
     row.update({"out_threshold": t, "out_of_view_query_fraction": system.net.queries / max(system.net.total, 1)})
