@@ -15,8 +15,8 @@ tests it), at surface probes and free points separately, this reports:
   placement with the true energy), and the energy and placement parts of LightNet's;
 - per ray class (SSRT hit, uncertain hit, miss): the predicted energy over the true energy (sum of
   radiance) and the class's share of the nMSE;
-- the single gain that would minimise the pooled nMSE and the nMSE it gives. It is fitted on the test
-  views themselves: a diagnostic of bias, not a calibration to apply.
+- the single gain that would minimise the pooled nMSE and the nMSE it gives, and the same with one gain
+  per ray class. They are fitted on the test views themselves: a diagnostic of bias, not a calibration.
 Needs the trained exports (`dvc repro train_lighting`). Writes reports/bench/light_energy.json and a PNG
 (predicted against true probe means, log-log; the nMSE of each predictor beside the oracle).
 """
@@ -95,6 +95,8 @@ class EnergyTally:
             self._add(f"class/{name}/pred", pred[sel].sum())
             self._add(f"class/{name}/target", target[sel].sum())
             self._add(f"class/{name}/error", ((pred[sel] - target[sel]) ** 2).sum())
+            self._add(f"class/{name}/pred_target", (pred[sel] * target[sel]).sum())
+            self._add(f"class/{name}/pred_pred", (pred[sel] ** 2).sum())
         self.probe_means.append(torch.stack([pred.mean((1, 2)), target.mean((1, 2))], 1).numpy())
 
     def summary(self) -> dict:
@@ -112,14 +114,22 @@ class EnergyTally:
             "nmse_at_best_gain": (gain**2 * s["gain/pred_pred"] - 2 * gain * s["gain/pred_target"] + den) / den,
             "classes": {},
         }
+        # the classes split the texels, so each class's best gain is fitted alone and their errors add up
+        error_at_class_gains = 0.0
         for name in ("hit", "uncertain", "miss"):
             rays = s.get(f"class/{name}/rays", 0.0)
             target = s.get(f"class/{name}/target", 0.0)
+            error = s.get(f"class/{name}/error", 0.0)
+            pt, pp = s.get(f"class/{name}/pred_target", 0.0), s.get(f"class/{name}/pred_pred", 0.0)
+            class_gain = pt / pp if pp > 0 else 1.0
+            error_at_class_gains += error + (class_gain**2 - 1) * pp - 2 * (class_gain - 1) * pt  # sum (g p - t)^2
             out["classes"][name] = {
                 "ray_fraction": rays / max(sum(s.get(f"class/{c}/rays", 0.0) for c in ("hit", "uncertain", "miss")), 1),
                 "predicted_over_true_energy": s.get(f"class/{name}/pred", 0.0) / target if target > 0 else None,
-                "nmse_share": s.get(f"class/{name}/error", 0.0) / den,
+                "nmse_share": error / den,
+                "best_gain": class_gain,
             }
+        out["nmse_at_best_class_gains"] = error_at_class_gains / den
         means = np.concatenate(self.probe_means)
         out["probes"] = int(len(means))
         ratio = means[:, 0] / np.maximum(means[:, 1], 1e-30)

@@ -55,7 +55,25 @@ def test_tally_summary_reads_a_uniform_underestimate():
     assert sum(c["ray_fraction"] for c in s["classes"].values()) == pytest.approx(1.0)
     assert sum(c["nmse_share"] for c in s["classes"].values()) == pytest.approx(s["nmse"]["lightnet"])
     assert all(c["predicted_over_true_energy"] == pytest.approx(0.5) for c in s["classes"].values())
+    assert all(c["best_gain"] == pytest.approx(2.0) for c in s["classes"].values())
+    assert s["nmse_at_best_class_gains"] == pytest.approx(0.0, abs=1e-12)
     assert s["probes"] == 15
+
+
+def test_class_gains_fix_a_bias_of_one_class_only():
+    target = _probes(4)
+    hit = torch.zeros(target.shape[:2], dtype=torch.bool)
+    hit[:, ::2] = True
+    u = torch.zeros(target.shape[:2])
+    pred = torch.where(hit[..., None], target, target / 3)  # hits exact, misses a third of the energy
+    t = le.EnergyTally()
+    t.add(pred, target, hit, u)
+    s = t.summary()
+    assert s["classes"]["miss"]["best_gain"] == pytest.approx(3.0) and s["classes"]["hit"][
+        "best_gain"
+    ] == pytest.approx(1.0)
+    assert s["nmse_at_best_class_gains"] == pytest.approx(0.0, abs=1e-12)
+    assert s["nmse_at_best_gain"] > 0.01  # one gain cannot fix both classes
 
 
 def test_empty_tally_is_refused():
