@@ -5,16 +5,19 @@ error splits exactly into an energy part and a placement part (the cross term su
 
     sum_t (L^_t - L_t)^2 = T (m^ - m)^2 + sum_t ((L^_t - m^) - (L_t - m))^2
 
-Divided by sum_t L_t^2 and pooled over the test probes, the two parts add up to the reported nMSE. The
-probe-mean oracle (the true mean at every texel) has no energy part, so a model beats it only if its
-placement part plus its energy part is below the oracle's placement part, which is fixed by the data.
+Summed over the test probes and divided once by the summed sum_t L_t^2 (pooled, so it differs from the
+stage's per-batch mean nMSE by under 0.01), the two parts add up to LightNet's nMSE. The probe-mean
+oracle (the true mean at every texel) has no energy part, so a model beats it only if its placement
+part plus its energy part is below the oracle's placement part, which is fixed by the data.
 On the test views of the exported LightNet (the frozen MaterialNet's G-buffers, as `train_lighting`
 tests it), at surface probes and free points separately, this reports:
 - the nMSE of LightNet, of the probe-mean oracle, of LightNet's own probe means at every texel (its
   energy without its placement) and of LightNet rescaled per probe and channel to the true mean (its
-  placement with the true energy), and the energy and placement parts of LightNet's;
+  placement with the true energy; the rescaling scales its deviations too, so this is not its placement
+  part), and the energy and placement parts of LightNet's;
 - per ray class (SSRT hit, uncertain hit, miss): the predicted energy over the true energy (sum of
-  radiance) and the class's share of the nMSE;
+  radiance) and the class's contribution to the nMSE (in nMSE units: the classes' contributions add up
+  to LightNet's nMSE);
 - the single gain that would minimise the pooled nMSE and the nMSE it gives, and the same with one gain
   per ray class. They are fitted on the test views themselves: a diagnostic of bias, not a calibration.
 Needs the trained exports (`dvc repro train_lighting`). Writes reports/bench/light_energy.json and a PNG
@@ -126,7 +129,7 @@ class EnergyTally:
             out["classes"][name] = {
                 "ray_fraction": rays / max(sum(s.get(f"class/{c}/rays", 0.0) for c in ("hit", "uncertain", "miss")), 1),
                 "predicted_over_true_energy": s.get(f"class/{name}/pred", 0.0) / target if target > 0 else None,
-                "nmse_share": error / den,
+                "nmse_contribution": error / den,
                 "best_gain": class_gain,
             }
         out["nmse_at_best_class_gains"] = error_at_class_gains / den
@@ -170,6 +173,8 @@ def tally(model_path: Path, data_dir: str, material_path: Path, split: str = "te
                     q["hit"][seg].view(P, T),
                     q["u"][seg].view(P, T),
                 )
+            if start != len(rays):  # the views' probes must account for every ray, in probe_rays' order
+                raise RuntimeError(f"{kind} probes: {start} texels split over views, {len(rays)} rays queried")
     return tallies
 
 
@@ -201,21 +206,24 @@ def plot(report: dict, path) -> None:
         vals = [report["kinds"][kind]["nmse"][p] for p in PREDICTORS]
         ax.bar(np.arange(len(PREDICTORS)) + i * width, vals, width, label=kind)
     ax.set_xticks(np.arange(len(PREDICTORS)) + width * (len(kinds) - 1) / 2, labels, fontsize=7)
-    ax.set_ylabel("normalised MSE (test)")
+    ax.set_ylabel(f"normalised MSE ({report['split']}, pooled)")
     lo = min(v for k in kinds for v in report["kinds"][k]["nmse"].values())
     ax.set_ylim(max(0.0, lo - 0.1), None)
     ax.legend(fontsize=7)
-    ax.set_title("energy against placement", fontsize=9)
+    ax.set_title("nMSE of each predictor (axis not from 0)", fontsize=9)
     for ax, kind in zip(axes[1:], kinds, strict=True):
         m = np.asarray(report["probe_means"][kind])
         ok = (m[:, 0] > 0) & (m[:, 1] > 0)
-        ax.loglog(m[ok, 1], m[ok, 0], ".", ms=2, alpha=0.4)
+        ax.loglog(m[ok, 1], m[ok, 0], ".", ms=2, alpha=0.4, label=f"{int(ok.sum())} probes")
         lim = [m[ok].min(), m[ok].max()]
         ax.plot(lim, lim, "k--", lw=0.8, label="predicted = true")
+        if (~ok).any():
+            ax.plot([], [], " ", label=f"{int((~ok).sum())} probes with a zero mean not drawn")
         k = report["kinds"][kind]
+        miss = k["classes"]["miss"]["predicted_over_true_energy"]
         ax.set_title(
-            f"{kind}: median predicted/true {k['median_predicted_over_true_probe_mean']:.2f}, "
-            f"miss energy {k['classes']['miss']['predicted_over_true_energy'] or 0:.2f}",
+            f"{kind}: median predicted/true probe mean {k['median_predicted_over_true_probe_mean']:.2f}\n"
+            f"on misses, predicted/true energy {'n/a' if miss is None else f'{miss:.2f}'}",
             fontsize=8,
         )
         ax.set_xlabel("true probe mean radiance")
