@@ -43,6 +43,7 @@ from pipeline.data.lighting import ViewLighting, probe_rays  # noqa: E402
 from pipeline.metrics.lighting import ray_classes  # noqa: E402
 
 KINDS = ViewLighting.KINDS
+RAY_CLASSES = ("hit", "uncertain", "miss")  # the keys of `ray_classes`, each added by every EnergyTally.add
 PREDICTORS = ("lightnet", "probe_mean_oracle", "lightnet_energy_only", "lightnet_placement_true_energy")
 
 
@@ -75,8 +76,9 @@ def predictor_errors(pred: torch.Tensor, target: torch.Tensor) -> dict[str, torc
 
 
 class EnergyTally:
-    """Running sums over views of one probe kind: the split, the predictors' errors, per ray class the
-    predicted and true radiance sums and squared error, and the terms of the best single gain."""
+    """Running sums over views of one probe kind: the split, the predictors' errors, and per ray class the
+    predicted and true radiance sums, the squared error and the terms of its best gain (the classes
+    partition the texels, so the terms of the best single gain are their sums)."""
 
     def __init__(self):
         self.sums: dict[str, float] = {}
@@ -91,8 +93,6 @@ class EnergyTally:
             self._add(k, v)
         for k, v in predictor_errors(pred, target).items():
             self._add(f"error/{k}", v)
-        self._add("gain/pred_target", (pred * target).sum())
-        self._add("gain/pred_pred", (pred**2).sum())
         for name, sel in ray_classes(hit, u).items():
             self._add(f"class/{name}/rays", sel.sum())
             self._add(f"class/{name}/pred", pred[sel].sum())
@@ -107,28 +107,32 @@ class EnergyTally:
         if not s or s["target"] <= 0:
             raise ValueError("no probe texel with light: nothing to split (are the test views' probes empty?)")
         den = s["target"]
-        gain = s["gain/pred_target"] / max(s["gain/pred_pred"], 1e-30)
+
+        def total(term: str) -> float:
+            return sum(s[f"class/{c}/{term}"] for c in RAY_CLASSES)
+
+        pt_all, pp_all, rays_all = total("pred_target"), total("pred_pred"), total("rays")
+        gain = pt_all / max(pp_all, 1e-30)
         out = {
             "nmse": {name: s[f"error/{name}"] / den for name in PREDICTORS},
             "lightnet_energy_part": s["energy"] / den,
             "lightnet_placement_part": s["placement"] / den,
             "oracle_placement_part": s["error/probe_mean_oracle"] / den,
             "best_gain": gain,
-            "nmse_at_best_gain": (gain**2 * s["gain/pred_pred"] - 2 * gain * s["gain/pred_target"] + den) / den,
+            "nmse_at_best_gain": (gain**2 * pp_all - 2 * gain * pt_all + den) / den,
             "classes": {},
         }
         # the classes split the texels, so each class's best gain is fitted alone and their errors add up
         error_at_class_gains = 0.0
-        for name in ("hit", "uncertain", "miss"):
-            rays = s.get(f"class/{name}/rays", 0.0)
-            target = s.get(f"class/{name}/target", 0.0)
-            error = s.get(f"class/{name}/error", 0.0)
-            pt, pp = s.get(f"class/{name}/pred_target", 0.0), s.get(f"class/{name}/pred_pred", 0.0)
+        for name in RAY_CLASSES:
+            target = s[f"class/{name}/target"]
+            error = s[f"class/{name}/error"]
+            pt, pp = s[f"class/{name}/pred_target"], s[f"class/{name}/pred_pred"]
             class_gain = pt / pp if pp > 0 else 1.0
             error_at_class_gains += error + (class_gain**2 - 1) * pp - 2 * (class_gain - 1) * pt  # sum (g p - t)^2
             out["classes"][name] = {
-                "ray_fraction": rays / max(sum(s.get(f"class/{c}/rays", 0.0) for c in ("hit", "uncertain", "miss")), 1),
-                "predicted_over_true_energy": s.get(f"class/{name}/pred", 0.0) / target if target > 0 else None,
+                "ray_fraction": s[f"class/{name}/rays"] / max(rays_all, 1),
+                "predicted_over_true_energy": s[f"class/{name}/pred"] / target if target > 0 else None,
                 "nmse_contribution": error / den,
                 "best_gain": class_gain,
             }

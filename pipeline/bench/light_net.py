@@ -211,14 +211,14 @@ def thresholds(model_path: Path, data_dir: str, material_path: Path, values=(0.0
     the G-buffers it was trained on: the frozen MaterialNet's predictions (`material_path`), as in
     `train_lighting` with gbuffers=predicted."""
     from pipeline.data.datamodules import InteriorVerseDataModule
-    from pipeline.models.export import read_export
+    from pipeline.models.export import LIGHT_FORMAT, read_export
     from pipeline.models.material_net import load_material_export
 
-    blob = read_export(model_path, "invrender.light_net/1")
+    blob = read_export(model_path, LIGHT_FORMAT)
     _, material = load_material_export(material_path)
     dm = InteriorVerseDataModule(data_dir, batch_size=4, lighting=True)
     dm.setup("test")
-    return [_threshold_row(t, blob, material, dm) for t in tqdm(values, desc="out-of-view threshold")]
+    return [_threshold_row(t, model_path, blob, material, dm) for t in tqdm(values, desc="out-of-view threshold")]
 
 
 class _CountingLightNet(LightNet):
@@ -233,31 +233,32 @@ class _CountingLightNet(LightNet):
         return out
 
 
-def system_from_export(blob: dict, material: dict, net_cls=LightNet, **overrides):
-    """A LightingSystem in eval mode holding the exported LightNet (`blob`, its options updated by
-    `overrides`, built as `net_cls`) on the frozen MaterialNet's G-buffers (`material`), with the render
-    settings of conf/render/importance.yaml: the model as `train_lighting` tests it."""
+def system_from_export(path, blob: dict, material: dict, net_cls=LightNet, **overrides):
+    """A LightingSystem in eval mode holding the LightNet exported at `path` (its export dict `blob`, its
+    options updated by `overrides`, built as `net_cls`; a mismatch is refused naming the file) on the
+    frozen MaterialNet's G-buffers (`material`), with the render settings of conf/render/importance.yaml:
+    the model as `train_lighting` tests it."""
+    from pipeline.models.export import build_from_export
     from pipeline.systems.lighting import LightingSystem
 
     cfg = {**blob["light_net"], **overrides}
     render = {"estimator": "importance", "spp": 8, "eval_spp": 16, "seed": 0}  # conf/render/importance.yaml
     system = LightingSystem(light_net=cfg, material=material, render=render, gbuffers="predicted")
-    system.net = net_cls(**cfg)
-    system.net.load_state_dict(blob["state_dict"])
+    system.net = build_from_export(path, net_cls, cfg, blob["state_dict"])
     return system.eval()
 
 
 def evaluation_system(model_path, material_path):
     """`system_from_export` of the LightNet export at model_path and the MaterialNet export at material_path."""
-    from pipeline.models.export import read_export
+    from pipeline.models.export import LIGHT_FORMAT, read_export
     from pipeline.models.material_net import load_material_export
 
     _, material = load_material_export(material_path)
-    return system_from_export(read_export(model_path, "invrender.light_net/1"), material)
+    return system_from_export(model_path, read_export(model_path, LIGHT_FORMAT), material)
 
 
-def _threshold_row(t: float, blob: dict, material: dict, dm) -> dict:
-    system = system_from_export(blob, material, _CountingLightNet, mode="mixed", out_threshold=t)
+def _threshold_row(t: float, model_path, blob: dict, material: dict, dm) -> dict:
+    system = system_from_export(model_path, blob, material, _CountingLightNet, mode="mixed", out_threshold=t)
     acc = [system.evaluate_batch(batch) for batch in dm.plain_loader("test")]
     row = {k: sum(r[k] for r in acc) / len(acc) for k in acc[0]}
     row.update({"out_threshold": t, "out_of_view_query_fraction": system.net.queries / max(system.net.total, 1)})
