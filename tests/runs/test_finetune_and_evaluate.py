@@ -8,7 +8,7 @@ import pytest
 
 from tests.conftest import compose_cfg
 
-pytestmark = [pytest.mark.slow, pytest.mark.xdist_group("benchmark_stages")]  # one worker runs the module fixture
+pytestmark = [pytest.mark.slow, pytest.mark.xdist_group("finetune_and_evaluate")]  # one worker runs the module fixture
 
 
 @pytest.fixture(scope="module")
