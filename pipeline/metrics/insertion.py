@@ -1,4 +1,4 @@
-"""Scores of insertion and editing cases (DESIGN.md section 6) and paired bootstrap intervals.
+"""Scores of insertion and editing cases (docs/design.md, section 6.3); their intervals come from metrics.bootstrap.
 
 Every score is on the case's pixels only (the object or edit mask), against the Mitsuba render, after
 one tone map for all rows (`metrics.image.tonemap` with the photo's mean): PSNR and SSIM (the SSIM map of
@@ -45,28 +45,3 @@ def noise_floor_psnr(target: torch.Tensor, stderr: torch.Tensor, scale: float) -
     slope = 1 / (2 * scale * (1 + y) ** 2)
     mse = ((slope * stderr.double()) ** 2).mean().clamp(min=1e-12)
     return float(-10 * torch.log10(mse))
-
-
-def paired_bootstrap(diff, resamples: int = 2000, seed: int = 0, level: float = 0.95, groups=None) -> dict[str, float]:
-    """Mean of paired per-case differences (n,) and its percentile bootstrap interval. With `groups` (n,)
-    (the view each case comes from) whole groups are resampled with replacement, since cases of one view
-    share its photo, its predictions and so their errors; else single cases. Returns {"diff", "lo", "hi",
-    "n"}; with fewer than two groups there is no spread to resample and lo, hi are NaN."""
-    d = np.asarray(diff, np.float64)
-    if d.ndim != 1 or not len(d):
-        raise ValueError(f"paired_bootstrap: need a non-empty 1-D array of differences, got shape {d.shape}")
-    if not np.isfinite(d).all():
-        raise ValueError("paired_bootstrap: differences hold NaN/inf")
-    labels = np.arange(len(d)) if groups is None else np.unique(np.asarray(groups), return_inverse=True)[1]
-    if len(labels) != len(d):
-        raise ValueError(f"paired_bootstrap: {len(labels)} group labels for {len(d)} differences")
-    k = int(labels.max()) + 1
-    out = {"diff": float(d.mean()), "n": float(len(d))}
-    if k < 2:
-        return {**out, "lo": float("nan"), "hi": float("nan")}
-    sums, counts = np.bincount(labels, d, k), np.bincount(labels, minlength=k).astype(np.float64)
-    draws = np.random.default_rng(seed).integers(0, k, size=(resamples, k))
-    means = sums[draws].sum(1) / counts[draws].sum(1)
-    tail = (1 - level) / 2 * 100
-    lo, hi = np.percentile(means, [tail, 100 - tail])
-    return {**out, "lo": float(lo), "hi": float(hi)}

@@ -50,7 +50,8 @@ from pipeline.data.synth import mitsuba_backend as mb
 from pipeline.data.synth.cases import InsertedObject, MaterialEdit
 from pipeline.data.synth.oracle import MitsubaOracle
 from pipeline.data.synth.scene import Room
-from pipeline.metrics.insertion import HIGHER_IS_BETTER, SCORES, case_scores, noise_floor_psnr, paired_bootstrap
+from pipeline.metrics.bootstrap import paired_bootstrap
+from pipeline.metrics.insertion import HIGHER_IS_BETTER, SCORES, case_scores, noise_floor_psnr
 from pipeline.models.insertion import (
     composite_gbuffer,
     composite_image,

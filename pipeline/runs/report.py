@@ -27,6 +27,7 @@ from pathlib import Path
 import numpy as np
 from omegaconf import DictConfig
 
+from pipeline.runs.results_doc import render as render_results
 from pipeline.tracking import publish, stage_run
 from pipeline.tracking.figures import pareto_figure
 
@@ -249,6 +250,31 @@ def pareto_points(runs: dict) -> list[dict]:
     return points
 
 
+def ablation_tables(light_rows: list[str], mat_rows: list[str], runs: dict) -> list[str]:
+    """The ablation tables as docs/results.md embeds them (the same rows as ablations.md)."""
+    return [
+        "### LightNet",
+        "",
+        *light_rows,
+        "",
+        "### MaterialNet",
+        "",
+        *mat_rows,
+        "",
+        "### Stability",
+        "",
+        *stability(runs),
+    ]
+
+
+def results_markdown(reports: Path, ablate_dir: Path, profile: str) -> str:
+    """docs/results.md from the reports alone (what the stage writes; the test renders it the same way)."""
+    runs = read_runs(ablate_dir)
+    light_rows, _ = table({**runs, **threshold_runs(runs)}, "train_lighting", LIGHT_COLUMNS)
+    mat_rows, _ = table(runs, "train_material", MATERIAL_COLUMNS)
+    return render_results(reports, ablation_tables(light_rows, mat_rows, runs), profile)
+
+
 def figure_links(reports: Path, out: Path) -> list[str]:
     lines = []
     for png in sorted(reports.rglob("*.png")):
@@ -287,6 +313,9 @@ def run(cfg: DictConfig) -> dict[str, float]:
         *stability(runs),
     ]
     (out / "ablations.md").write_text("\n".join(doc) + "\n")
+    results_doc = Path(cfg.results_doc)
+    results_doc.parent.mkdir(parents=True, exist_ok=True)
+    results_doc.write_text(results_markdown(reports, Path(cfg.ablate_dir), cfg.profile_name))
     points = pareto_points(runs)
     figure = pareto_figure(points, out / "pareto.png", title=f"accuracy against speed ({cfg.profile_name})")
     summary = ["# Summary", "", "- [ablations.md](ablations.md)", "- [pareto.png](pareto.png)", "", "## Figures"]

@@ -4,7 +4,8 @@ import numpy as np
 import pytest
 import torch
 
-from pipeline.metrics.insertion import case_scores, noise_floor_psnr, paired_bootstrap
+from pipeline.metrics.bootstrap import paired_bootstrap
+from pipeline.metrics.insertion import case_scores, noise_floor_psnr
 
 
 def test_paired_bootstrap_covers_the_true_mean_at_its_level():

@@ -1,0 +1,385 @@
+"""docs/results.md, written by the `report` stage from the files the stages and benches wrote under
+reports/: nothing in it is typed by hand, and every interval in it is computed here by
+`pipeline.metrics.bootstrap` from per-view scores the stages wrote (or was computed by the stage that
+wrote it, with the same bootstrap). A test renders it from the committed reports and requires it to equal
+the committed file, so it cannot drift from them.
+
+`render(reports, ablation_tables)` returns the document; every section reads only its own files and says
+which, and a section whose files are missing says so instead of printing numbers.
+"""
+
+from __future__ import annotations
+
+import csv
+import json
+import math
+from collections.abc import Callable
+from pathlib import Path
+
+import numpy as np
+
+from pipeline.metrics.bootstrap import mean_bootstrap, paired_bootstrap, ratio_bootstrap
+
+RESAMPLES, SEED = 2000, 0  # every interval here: 95 %, 2000 resamples of views, seed 0
+
+MATERIAL_METRICS = ("albedo_mse", "normal_angle_deg", "roughness_mse", "metallic_mse", "depth_log_mse")
+LIGHT_METRICS = (
+    ("render_psnr", "re-render PSNR (dB)"),
+    ("surf_light_nmse", "surface nMSE"),
+    ("free_light_nmse", "free nMSE"),
+    ("surf_light_relmse", "surface relMSE"),
+    ("free_light_relmse", "free relMSE"),
+    ("surf_light_log_l1", "surface log-L1"),
+    ("free_light_log_l1", "free log-L1"),
+)
+LIGHT_BASELINES = ("constant", "scaled_constant", "probe_mean_oracle", "probe_median_oracle", "probe_profile_oracle")
+EDIT_ROWS = ("lightnet", "lightnet_gt_gbuffers", "constant", "scaled_constant", "nearest_probe", "oracle")
+INSERT_GROUPS = ("mirror", "glossy", "diffuse", "all")
+
+
+def num(v, digits: int = 4) -> str:
+    """A number as the document prints it: 4 significant digits, n/a for missing or non-finite."""
+    if v is None or isinstance(v, str) or not math.isfinite(float(v)):
+        return "n/a"
+    return f"{float(v):.{digits}g}"
+
+
+def interval(lo, hi) -> str:
+    return "n/a" if not (math.isfinite(lo) and math.isfinite(hi)) else f"[{num(lo)}, {num(hi)}]"
+
+
+def signed(v) -> str:
+    return "n/a" if not math.isfinite(v) else f"{v:+.4g}"
+
+
+def md_table(header: list[str], rows: list[list[str]]) -> list[str]:
+    return ["| " + " | ".join(header) + " |", "|" + "---|" * len(header), *("| " + " | ".join(r) + " |" for r in rows)]
+
+
+def read_json(path: Path) -> dict | None:
+    """The JSON object at `path`, or None when the file is absent; a corrupt file raises naming it."""
+    if not path.is_file():
+        return None
+    try:
+        data = json.loads(path.read_text())
+    except json.JSONDecodeError as e:
+        raise ValueError(f"{path}: not valid JSON ({e})") from e
+    if not isinstance(data, dict):
+        raise ValueError(f"{path}: expected a JSON object, got {type(data).__name__}")
+    return data
+
+
+def read_views(path: Path) -> dict[str, np.ndarray] | None:
+    """Per-view scores {column: (n,) array} of a CSV whose first column is the view id; None if absent.
+    Non-numeric or non-finite cells raise naming the file, row and column."""
+    if not path.is_file():
+        return None
+    with path.open(newline="") as f:
+        rows = list(csv.reader(f))
+    if len(rows) < 2:
+        raise ValueError(f"{path}: no per-view rows")
+    header, body = rows[0], rows[1:]
+    cols: dict[str, np.ndarray] = {header[0]: np.array([r[0] for r in body])}
+    for j, name in enumerate(header[1:], start=1):
+        values = []
+        for i, r in enumerate(body, start=2):
+            try:
+                values.append(float(r[j]))
+            except (IndexError, ValueError) as e:
+                raise ValueError(f"{path}: row {i}, column {name!r} is not a number") from e
+        cols[name] = np.asarray(values)
+    return cols
+
+
+def shown(reports: Path, path: Path) -> str:
+    """`path` as the document names it: under `reports/`, wherever the reports folder is."""
+    return "reports/" + path.relative_to(reports).as_posix()
+
+
+def missing(section: str, path: Path) -> list[str]:
+    return [
+        f"No `{path.name}` in `{path.parent.name}/`: run the stage that writes it (`dvc repro`) to fill this {section}.",
+        "",
+    ]
+
+
+def section_data(reports: Path) -> list[str]:
+    syn, pre = read_json(reports / "synthesize/metrics.json"), read_json(reports / "preprocess/metrics.json")
+    lines = ["## Data", "", "From `reports/synthesize/metrics.json` and `reports/preprocess/metrics.json`.", ""]
+    rows = [[f"synthesize: {k}", num(v)] for k, v in sorted((syn or {}).items()) if isinstance(v, int | float)]
+    rows += [[f"preprocess: {k}", num(v)] for k, v in sorted((pre or {}).items()) if isinstance(v, int | float)]
+    return lines + (md_table(["quantity", "value"], rows) if rows else ["No data reports."]) + [""]
+
+
+def section_material(reports: Path) -> list[str]:
+    path = reports / "train_material/metrics.json"
+    m = read_json(path)
+    lines = ["## MaterialNet (`train_material`, test split)", ""]
+    if m is None:
+        return lines + missing("section", path)
+    views = read_views(reports / "train_material/test_views.csv")
+    lines += [
+        f"From `{shown(reports, path)}`"
+        + (" and the per-view scores in `reports/train_material/test_views.csv`." if views else "."),
+        "Gate ratio: the model's error over the baseline's on the same views (lower is better); the gate",
+        "passes when every ratio is at most the stage's margin."
+        + (" Intervals: 95 % bootstrap over test views, model and baseline resampled together." if views else ""),
+        "",
+    ]
+    rows = []
+    for metric in MATERIAL_METRICS:
+        for key in sorted(k for k in m if k.startswith("baseline/") and k.endswith(f"/{metric}")):
+            base = key.split("/")[1]
+            ci = "n/a"
+            if views and f"model/{metric}" in views and f"{base}/{metric}" in views:
+                r = ratio_bootstrap(views[f"model/{metric}"], views[f"{base}/{metric}"], RESAMPLES, SEED)
+                ci = interval(r["lo"], r["hi"])
+            ratio = m.get(f"gate/{base}/{metric}")
+            rows.append([metric, num(m.get(f"test/{metric}")), base, num(m[key]), num(ratio), ci])
+    lines += md_table(["metric", "model", "baseline", "baseline's", "gate ratio", "ratio 95 % interval"], rows)
+    passed = m.get("gate/passed")
+    lines += [
+        "",
+        f"Gate passed: {'yes' if passed == 1 else 'no' if passed == 0 else 'n/a'}. "
+        f"Epochs {num(m.get('epochs'))}, steps {num(m.get('global_step'))}, "
+        f"parameters {num(m.get('parameters'), 7)}.",
+        "",
+    ]
+    return lines
+
+
+def section_lighting(reports: Path) -> list[str]:
+    path = reports / "train_lighting/metrics.json"
+    m = read_json(path)
+    lines = ["## LightNet (`train_lighting`, test split)", ""]
+    if m is None:
+        return lines + missing("section", path)
+    modes = sorted({k.split("/test/")[0] for k in m if "/test/" in k and not k.startswith("baseline/")})
+    lines += [
+        f"From `{shown(reports, path)}`: each tested mode of the trained model (and the same network untrained),",
+        "the constant lights and the probe oracles (which read the ground-truth probes) on the same views.",
+        "",
+    ]
+    rows = []
+    for name in modes:
+        rows.append([f"LightNet `{name}`", *(num(m.get(f"{name}/test/{k}")) for k, _ in LIGHT_METRICS)])
+    for b in LIGHT_BASELINES:
+        if any(f"baseline/{b}/{k}" in m for k, _ in LIGHT_METRICS):
+            rows.append([b, *(num(m.get(f"baseline/{b}/{k}")) for k, _ in LIGHT_METRICS)])
+    lines += md_table(["predictor", *(label for _, label in LIGHT_METRICS)], rows)
+    probes = {k.split("/")[1]: v for k, v in m.items() if k.endswith("/render_psnr_at_probes")}
+    if probes:
+        lines += ["", "Re-render PSNR at probe pixels (dB): " + ", ".join(f"{k} {num(v)}" for k, v in probes.items())]
+    views = read_views(reports / "train_lighting/test_views.csv")
+    if views:
+        lines += ["", *paired_rows(views, "train_lighting/test_views.csv")]
+    lines.append("")
+    return lines
+
+
+def paired_rows(views: dict[str, np.ndarray], source: str) -> list[str]:
+    """Paired per-view differences of the model's columns (`model/<metric>`, or `<mode>/<metric>` for
+    the first mode) against every other predictor's same metric, with bootstrap intervals."""
+    cols = [c for c in views if "/" in c]
+    predictors = list(dict.fromkeys(c.split("/")[0] for c in cols))
+    if not predictors:
+        return []
+    model = "model" if "model" in predictors else predictors[0]
+    rows = []
+    for col in cols:
+        who, metric = col.split("/", 1)
+        if who == model or f"{model}/{metric}" not in views:
+            continue
+        d = paired_bootstrap(views[f"{model}/{metric}"] - views[col], RESAMPLES, SEED)
+        rows.append([metric, f"{model} - {who}", signed(d["diff"]), interval(d["lo"], d["hi"])])
+    head = [f"Paired per-view differences from `reports/{source}` (95 % bootstrap over views):", ""]
+    return head + md_table(["metric", "difference", "mean", "95 % interval"], rows)
+
+
+def section_edit(reports: Path) -> list[str]:
+    path = reports / "edit/metrics.json"
+    m = read_json(path)
+    lines = ["## Object insertion and material editing (`edit`)", ""]
+    if m is None:
+        return lines + missing("section", path)
+    lines += [
+        f"From `{shown(reports, path)}` and `reports/edit/timings.json`: PSNR (dB) on the case's pixels against",
+        "Mitsuba's render of the same case. Differences are paired by case, with the stage's 95 % bootstrap",
+        "interval over views; a difference whose interval holds 0 is no difference.",
+        "",
+    ]
+    groups = [("insert", g) for g in INSERT_GROUPS] + sorted(
+        {("edit", k.split("/")[1]) for k in m if k.startswith("edit/")}
+    )
+    header = ["row", *(f"{kind} {g}" for kind, g in groups)]
+    rows = [["cases", *(num(m.get(f"{kind}/{g}/cases")) for kind, g in groups)]]
+    for who in EDIT_ROWS:
+        rows.append([who, *(num(m.get(f"{kind}/{g}/{who}/psnr")) for kind, g in groups)])
+    rows.append(["noise floor", *(num(m.get(f"{kind}/{g}/ground_truth/noise_floor_psnr")) for kind, g in groups)])
+    lines += md_table(header, rows)
+    lines += ["", "LightNet minus each other row, PSNR (dB):", ""]
+    diff_rows = []
+    for kind, g in groups:
+        for who in EDIT_ROWS[1:]:
+            p = f"{kind}/{g}/lightnet_minus_{who}/psnr"
+            if f"{p}_diff" in m:
+                diff_rows.append([f"{kind} {g}", who, signed(m[f"{p}_diff"]), interval(m[f"{p}_lo"], m[f"{p}_hi"])])
+    lines += md_table(["cases", "against", "difference", "95 % interval"], diff_rows)
+    a = {w: m.get(f"insert/all/{w}/psnr") for w in ("lightnet", "scaled_constant", "oracle")}
+    if all(v is not None for v in a.values()) and a["oracle"] != a["scaled_constant"]:
+        closed = (a["lightnet"] - a["scaled_constant"]) / (a["oracle"] - a["scaled_constant"])
+        lines += [
+            "",
+            f"All objects: LightNet closes {closed:.1%} of the PSNR gap from the scaled constant to the oracle.",
+        ]
+    t = read_json(reports / "edit/timings.json") or {}
+    per_case = {k.split("/", 1)[1]: v for k, v in t.items() if k.startswith("seconds_per_case/")}
+    if per_case:
+        lines += ["", "Seconds per case: " + ", ".join(f"{k} {num(v, 3)}" for k, v in sorted(per_case.items()))]
+        lines[-1] += f"; the stage's wall time {num(t.get('wall_seconds'), 3)} s."
+    lines.append("")
+    return lines
+
+
+def section_evaluate(reports: Path) -> list[str]:
+    path = reports / "evaluate/metrics.json"
+    m = read_json(path)
+    lines = ["## Real-data benchmarks (`evaluate`)", ""]
+    if m is None:
+        return lines + missing("section", path)
+    src = read_json(reports / "evaluate/sources.json") or {}
+    lines += [
+        f"From `{shown(reports, path)}` and the per-image CSVs beside it; means with their 95 % bootstrap",
+        "interval over images, and the fine-tuned model minus the trained one paired by image.",
+    ]
+    if src:
+        lines.append("Data sources: " + ", ".join(f"{k}: {v}" for k, v in sorted(src.items()) if isinstance(v, str)))
+    lines.append("")
+    rows = []
+    for bench, csv_name in (("iiw", "iiw"), ("nyu", "nyuv2"), ("synthetic", "synthetic")):
+        trained = read_views(reports / f"evaluate/trained_{csv_name}.csv")
+        tuned = read_views(reports / f"evaluate/finetuned_{csv_name}.csv")
+        if trained is None or tuned is None:
+            continue
+        id_col = next(iter(trained))
+        same_views = np.array_equal(trained[id_col], tuned[id_col])
+        for metric in list(trained)[1:]:
+            if metric not in tuned:
+                continue
+            a, b = mean_bootstrap(trained[metric], RESAMPLES, SEED), mean_bootstrap(tuned[metric], RESAMPLES, SEED)
+            d = paired_bootstrap(tuned[metric] - trained[metric], RESAMPLES, SEED) if same_views else None
+            rows.append(
+                [
+                    f"{bench} {metric}",
+                    str(len(trained[metric])),
+                    f"{num(a['mean'])} {interval(a['lo'], a['hi'])}",
+                    f"{num(b['mean'])} {interval(b['lo'], b['hi'])}",
+                    "n/a (different images)" if d is None else f"{signed(d['diff'])} {interval(d['lo'], d['hi'])}",
+                ]
+            )
+    lines += md_table(["metric", "images", "trained", "fine-tuned", "fine-tuned - trained"], rows)
+    pooled = {k: v for k, v in m.items() if "pooled" in k or "whdr" in k}
+    lines += ["", "Pooled figures: " + ", ".join(f"{k} {num(v)}" for k, v in sorted(pooled.items())), ""]
+    return lines
+
+
+def flat_rows(rows: list) -> tuple[list[str], list[list[str]]]:
+    """A list of flat dicts as (header, cells); nested values are left out."""
+    keys = list(dict.fromkeys(k for r in rows for k, v in r.items() if not isinstance(v, dict | list)))
+    return keys, [
+        [
+            num(r[k]) if isinstance(r.get(k), int | float) and not isinstance(r.get(k), bool) else str(r.get(k, ""))
+            for k in keys
+        ]
+        for r in rows
+    ]
+
+
+def bench_block(name: str, data: dict) -> list[str]:
+    """A bench JSON's headline: its `measured`/`summary` scalars and row lists, and any `quoted` figures
+    labelled as quoted with their source."""
+    machine = data.get("machine", {})
+    lines = [
+        f"### `{name}`",
+        "",
+        f"From `reports/bench/{name}.json` (device {machine.get('device', 'n/a')}, "
+        f"{machine.get('torch_threads', 'n/a')} threads, torch {machine.get('torch', 'n/a')}).",
+    ]
+    head = data.get("measured", data.get("summary"))
+    if head is None and name == "light_energy":
+        head = {f"nMSE ({kind})": v.get("nmse", {}) for kind, v in data.get("kinds", {}).items()}
+    elif head is None:
+        head = {k: v for k, v in data.items() if k in BENCH_HEADLINES.get(name, ())}
+    scalars = [[k, num(v)] for k, v in head.items() if isinstance(v, int | float) and not isinstance(v, bool)]
+    if scalars:
+        lines += ["", *md_table(["measured", "value"], scalars)]
+    for k, v in head.items():
+        if isinstance(v, list) and v and all(isinstance(r, dict) for r in v):
+            header, cells = flat_rows(v)
+            lines += ["", f"{k}:", "", *md_table(header, cells)]
+        elif isinstance(v, dict) and v and all(isinstance(x, int | float) for x in v.values()):
+            lines += ["", f"{k}: " + ", ".join(f"{a} {num(b)}" for a, b in v.items())]
+    quoted = data.get("quoted", {})
+    if quoted:
+        rows = [
+            [
+                k,
+                num(q.get("value")) if isinstance(q, dict) else num(q),
+                str(q.get("unit", "")) if isinstance(q, dict) else "",
+                str(q.get("source", "")) if isinstance(q, dict) else "",
+            ]
+            for k, q in quoted.items()
+        ]
+        lines += ["", "Quoted, not measured in this run:", "", *md_table(["figure", "value", "unit", "source"], rows)]
+    return lines + [""]
+
+
+# which top-level keys are a bench's headline when its JSON has neither `measured` nor `summary`
+BENCH_HEADLINES = {
+    "insertion": ("speed",),
+    "light_net": ("speed", "hyper_apply"),
+    "material_net": ("results",),
+}
+
+
+def section_benches(reports: Path) -> list[str]:
+    lines = ["## Benchmarks (`python -m pipeline.bench.<name>`)", ""]
+    files = sorted((reports / "bench").glob("*.json"))
+    if not files:
+        return lines + ["No bench results under `reports/bench/`.", ""]
+    for f in files:
+        lines += bench_block(f.stem, read_json(f) or {})
+    return lines
+
+
+SECTIONS: tuple[Callable[[Path], list[str]], ...] = (
+    section_data,
+    section_material,
+    section_lighting,
+    section_edit,
+    section_evaluate,
+)
+
+
+def render(reports: Path, ablation_tables: list[str], profile: str) -> str:
+    """The whole document from the reports under `reports` and the report stage's ablation tables."""
+    lines = [
+        f"# Results ({profile})",
+        "",
+        "Written by the `report` stage (`dvc repro`) from the files under `reports/`; do not edit by hand.",
+        "Every interval is a 95 % bootstrap over test views computed by `pipeline.metrics.bootstrap`.",
+        "Figures: [reports/report/summary.md](../reports/report/summary.md).",
+        "",
+    ]
+    for section in SECTIONS:
+        lines += section(reports)
+    lines += [
+        "## Ablations (`ablate`, `report`)",
+        "",
+        "From `reports/ablate/*/` via [reports/report/ablations.md](../reports/report/ablations.md).",
+        "",
+        *ablation_tables,
+        "",
+    ]
+    lines += section_benches(reports)
+    return "\n".join(lines).rstrip() + "\n"

@@ -1,0 +1,51 @@
+"""docs/results.md is what the `report` stage renders from the committed reports: it cannot drift from
+them, a changed number in a report changes it, and a corrupt report is refused naming the file."""
+
+import json
+import shutil
+from pathlib import Path
+
+import pytest
+
+from pipeline.runs.report import results_markdown
+from tests.conftest import ROOT
+
+REPORTS = ROOT / "reports"
+
+
+def render(reports: Path) -> str:
+    return results_markdown(reports, reports / "ablate", "tiny")
+
+
+def test_committed_results_page_is_what_the_reports_render():
+    committed = (ROOT / "docs" / "results.md").read_text()
+    assert render(REPORTS) == committed, (
+        "docs/results.md differs from what the reports render: run `dvc repro report` "
+        "(or `python -m stages.report`) and commit the result"
+    )
+
+
+def test_a_changed_report_number_changes_the_page(tmp_path):
+    reports = tmp_path / "reports"
+    shutil.copytree(REPORTS, reports)
+    path = reports / "edit" / "metrics.json"
+    metrics = json.loads(path.read_text())
+    before = render(reports)
+    assert "| lightnet | 17.94 |" in before  # mirror insertion PSNR as the edit stage wrote it
+    metrics["insert/mirror/lightnet/psnr"] = 19.5
+    path.write_text(json.dumps(metrics))
+    after = render(reports)
+    assert after != before and "| lightnet | 19.5 |" in after
+
+
+def test_corrupt_or_missing_reports(tmp_path):
+    reports = tmp_path / "reports"
+    shutil.copytree(REPORTS, reports)
+    (reports / "train_material" / "metrics.json").write_text("{not json")
+    with pytest.raises(ValueError, match="train_material/metrics.json"):
+        render(reports)
+    (reports / "train_material" / "metrics.json").unlink()
+    assert "No `" in render(reports)  # the section says which file is missing instead of printing numbers
+    (reports / "evaluate" / "trained_iiw.csv").write_text("id,whdr_gamma\n1000,nan-ish\n")
+    with pytest.raises(ValueError, match="trained_iiw.csv: row 2"):
+        render(reports)
