@@ -1,7 +1,7 @@
 """Analytic test scenes with exact ray casting: a box room with box furniture, in view space.
 
 Used to render exact depth/normal maps and exact first hits, against which screen-space ray tracing is
-scored. The camera sits at the origin looking down -z (OpenGL view space, DESIGN.md section 3).
+scored. The camera sits at the origin looking down -z (OpenGL view space, docs/design.md, section 3).
 """
 
 from __future__ import annotations
@@ -92,7 +92,7 @@ def score_ssrt(
     k: float = 10.0,
     tolerance_px: int = 2,
 ) -> dict[str, float]:
-    """Score screen-space hits against exact first hits (DESIGN.md / the render-core benchmark):
+    """Score screen-space hits against exact first hits (docs/design.md, section 5 / the render-core benchmark):
     recall over rays whose true hit is visible on screen (same plane as the pixel that shows it);
     precision over reported hits (correct = within `tolerance_px` of the true hit pixel), also among
     confident hits u = tanh(k gap) < 0.5; and how many wrong hits that screen space cannot avoid (true

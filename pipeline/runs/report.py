@@ -27,9 +27,9 @@ from pathlib import Path
 import numpy as np
 from omegaconf import DictConfig
 
-from pipeline.runs.results_doc import render as render_results
 from pipeline.tracking import publish, stage_run
 from pipeline.tracking.figures import pareto_figure
+from pipeline.tracking.results_page import render as render_results
 
 # (key, label, higher is better) of the table's columns
 LIGHT_COLUMNS = [

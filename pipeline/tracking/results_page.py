@@ -98,7 +98,8 @@ def shown(reports: Path, path: Path) -> str:
 
 def missing(section: str, path: Path) -> list[str]:
     return [
-        f"No `{path.name}` in `{path.parent.name}/`: run the stage that writes it (`dvc repro`) to fill this {section}.",
+        f"No `{path.name}` in `{path.parent.name}/`: run the stage that writes it (`dvc repro`) "
+        f"to fill this {section}.",
         "",
     ]
 

@@ -1,4 +1,4 @@
-"""docs/results.md is what the `report` stage renders from the committed reports: it cannot drift from
+"""Stage `report`: docs/results.md is what it renders from the committed reports: it cannot drift from
 them, a changed number in a report changes it, and a corrupt report is refused naming the file."""
 
 import json
