@@ -57,6 +57,6 @@ lint: setup
 	$(VENV)/bin/lint-imports
 
 ui: setup
-	@echo "MLflow UI on http://127.0.0.1:$(PORT) (Ctrl-C to stop)"
+	@echo "MLflow UI on http://127.0.0.1:$(PORT)/#/experiments?workflowType=machine_learning (Ctrl-C to stop)"
 	$(VENV)/bin/mlflow ui --backend-store-uri sqlite:///$(CURDIR)/mlflow.db \
 	  --default-artifact-root file://$(CURDIR)/mlartifacts --host 127.0.0.1 --port $(PORT) --workers 1

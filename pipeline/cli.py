@@ -12,13 +12,20 @@ from pathlib import Path
 
 def _validate(args) -> int:
     from pipeline.data import interiorverse as iv
+    from pipeline.data.preprocess import _fov as camera_fov
 
     root = Path(args.root)
     splits = iv.read_splits(root)
     jobs = iv.split_views(root, splits)
     rejected = []
+    cameras: dict[str, dict | None] = {}
     for split, scene, view in jobs:
         rejected.extend(iv.read_view(root, scene, view, args.max_inconsistent_fraction).rejections(split))
+        # preprocess stops on an unreadable cameras.json or a view without its FOV: so does validate
+        if scene not in cameras:
+            cameras[scene] = iv.read_cameras(root, scene)
+        if cameras[scene] is not None:
+            camera_fov(root, scene, view, cameras[scene], None)
     bad_views = len({(r["scene"], r["view"]) for r in rejected})
     for r in rejected:
         print(f"REJECT {r['file']}: {r['reason']}")
@@ -179,8 +186,7 @@ def _write_result(image, png: Path, exr: Path, hdr_input: bool) -> list[Path]:
     from PIL import Image
 
     from pipeline.data.formats.exr import write_exr
-    from pipeline.data.formats.photo import linear_to_srgb
-    from pipeline.data.synth.figures import tonemap
+    from pipeline.data.formats.photo import linear_to_srgb, tonemap
 
     tmp_png, tmp_exr = png.with_name(f".{png.name}.part"), exr.with_name(f".{exr.name}.part.exr")
     try:
@@ -197,9 +203,9 @@ def _write_result(image, png: Path, exr: Path, hdr_input: bool) -> list[Path]:
     return [png, exr]
 
 
-def _scene(photo: str | Path, material_path, light_path, fov: float):
-    """Read the photo and both exports (everything checked before any work) and predict the G-buffers:
-    (photo (H, W, 3), image (1, 3, H, W), G-buffers, LightNet, its context)."""
+def _prepare_photo(photo: str | Path, material_path, light_path, fov: float):
+    """Read the photo and both exports (everything checked before any work) and prepare it: its
+    G-buffers predicted and LightNet's context of them (`models.insertion.PreparedView`)."""
     from pipeline.data.formats.photo import read_linear
     from pipeline.models.light_net import load_light_export
     from pipeline.models.material_net import load_material_export
@@ -214,9 +220,9 @@ def _scene(photo: str | Path, material_path, light_path, fov: float):
         raise EditError(f"{photo}: {im.shape[1]}x{im.shape[0]} pixels; photos must be {MIN_SIDE} to {MAX_SIDE} a side")
     if float(im.mean()) <= 0:
         raise EditError(f"{photo}: the image is black; there is no light to estimate")
-    from pipeline.models.insertion import prepare_scene
+    from pipeline.models.insertion import prepare_view
 
-    return prepare_scene(im, material_net, meta, light_net, fov)
+    return prepare_view(im, material_net, meta, light_net, fov)
 
 
 def insert_object(
@@ -244,8 +250,8 @@ def insert_object(
     if spp < 1:
         raise EditError(f"--spp {spp}: must be >= 1")
     row, col = _parse_pixel(at)
-    scene = _scene(photo, material_path, light_path, fov)
-    result, _ = insert_into(scene, row, col, kind, material, radius, fov, spp, seed)
+    view = _prepare_photo(photo, material_path, light_path, fov)
+    result, _ = insert_into(view, row, col, kind, material, radius, spp, seed)
     return _write_result(result.numpy(), png, exr, Path(photo).suffix.lower() == ".exr")
 
 
@@ -290,19 +296,19 @@ def edit_material(
             m = np.asarray(img.convert("L"), np.float32) / 255.0
     except (UnidentifiedImageError, OSError) as exc:
         raise EditError(f"--mask {mask}: cannot decode image ({exc})") from exc
-    photo_t, image, gb, net, ctx = _scene(photo, material_path, light_path, fov)
-    H, W = photo_t.shape[:2]
+    view = _prepare_photo(photo, material_path, light_path, fov)
+    H, W = view.photo.shape[:2]
     if m.shape != (H, W):
         raise EditError(f"--mask {mask}: {m.shape[1]}x{m.shape[0]} pixels, the photo is {W}x{H}")
     pixels = torch.from_numpy(np.flatnonzero(m.reshape(-1) > 0.5))
     if not len(pixels):
         raise EditError(f"--mask {mask}: selects no pixel (white = edit)")
+    gb, fov = view.pred, view.fov
     shading = edited_gbuffer(gb, pixels, rgb_albedo, roughness, metallic)
+    light = light_net_radiance(view.net, view.ctx_pred, gb, fov, seed)
     with torch.no_grad():
-        rgb = render_case(
-            MCRenderLayer(spp=spp), shading, fov, pixels, light_net_radiance(net, ctx, gb, fov, seed), seed
-        )
-    result = composite_image(photo_t, pixels, rgb).numpy()
+        rgb = render_case(MCRenderLayer(spp=spp), shading, fov, pixels, light, seed)
+    result = composite_image(view.photo, pixels, rgb).numpy()
     return _write_result(result, png, exr, Path(photo).suffix.lower() == ".exr")
 
 

@@ -1,4 +1,4 @@
-"""The layer rules of DESIGN.md section 2, checked by machine: import-linter's contracts and no cycles."""
+"""The layer rules of docs/design.md, section 2, checked by machine: import-linter's contracts and no cycles."""
 
 import subprocess
 import sys

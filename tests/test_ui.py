@@ -33,11 +33,8 @@ def _dom(url: str) -> str:
 
 
 def test_mlflow_ui_shows_a_stage_run_its_metric_and_its_figure(tmp_path):
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
     import mlflow
+    from matplotlib.figure import Figure
 
     from pipeline.tracking import publish
 
@@ -47,9 +44,9 @@ def test_mlflow_ui_shows_a_stage_run_its_metric_and_its_figure(tmp_path):
     exp = mlflow.create_experiment(f"ui-check-{tmp_path.name}", artifact_location=(tmp_path / "artifacts").as_uri())
     mlflow.set_experiment(experiment_id=exp)
     fig = tmp_path / "insertion_ui_check.png"
-    plt.plot([0, 1], [0, 1])
-    plt.savefig(fig)
-    plt.close()
+    figure = Figure()
+    figure.subplots().plot([0, 1], [0, 1])
+    figure.savefig(fig)
     with mlflow.start_run(run_name="edit-uicheck", tags={"stage": "edit"}) as run:
         publish(tmp_path / "report", {"insert/all/lightnet/psnr": 17.25})
         mlflow.log_artifact(str(fig), "figures")

@@ -1,4 +1,9 @@
-"""Shared helpers for benchmarks: timing medians, machine description, JSON output."""
+"""Shared helpers for benchmarks: timing medians, machine description, quoted figures, JSON output.
+
+A bench JSON keeps what it timed or measured in its own run under `measured` and any figure it did not
+measure (a number from a paper or another program) under `quoted`, each as {value, unit, source};
+nothing under `measured` is derived from a quoted figure.
+"""
 
 from __future__ import annotations
 
@@ -15,7 +20,7 @@ from pipeline.tracking import project_root
 
 
 def median_seconds(fn, repeats: int = 3, warmup: int = 1) -> float:
-    """Median wall time of fn() over `repeats` runs after `warmup` untimed runs."""
+    """Median wall time (s) of fn() over `repeats` runs after `warmup` untimed runs."""
     for _ in range(warmup):
         fn()
     times = []
@@ -26,26 +31,46 @@ def median_seconds(fn, repeats: int = 3, warmup: int = 1) -> float:
     return statistics.median(times)
 
 
-def machine() -> dict:
+def device_name(device: str = "cpu") -> str:
+    """The device a bench ran on, as the JSON records it: `cpu`, or `cuda (<GPU name>)`."""
+    dev = torch.device(device)
+    if dev.type == "cuda":
+        return f"cuda ({torch.cuda.get_device_name(dev)})"
+    return dev.type
+
+
+def threads(n: int) -> str:
+    """`1 thread`, `2 threads`: a thread count for figure labels."""
+    return f"{n} thread" + ("s" if n != 1 else "")
+
+
+def machine(device: str = "cpu") -> dict:
+    """Platform, versions, CPU count, torch's intra-op thread count and the device the bench ran on."""
     return {
         "platform": platform.platform(),
         "python": platform.python_version(),
         "torch": torch.__version__,
         "cpu_count": os.cpu_count(),
         "torch_threads": torch.get_num_threads(),
-        "device": torch.cuda.get_device_name(0) if torch.cuda.is_available() else "cpu",
+        "device": device_name(device),
     }
 
 
-def write_report(name: str, payload: dict) -> Path:
+def quoted(value: float, unit: str, source: str) -> dict:
+    """A figure the bench did not measure: its value, unit and where it comes from."""
+    return {"value": value, "unit": unit, "source": source}
+
+
+def write_report(name: str, payload: dict, device: str = "cpu") -> Path:
     path = project_root() / "reports" / "bench" / f"{name}.json"
     path.parent.mkdir(parents=True, exist_ok=True)
-    path.write_text(json.dumps({"benchmark": name, "machine": machine(), **payload}, indent=1) + "\n")
+    path.write_text(json.dumps({"benchmark": name, "machine": machine(device), **payload}, indent=1) + "\n")
     return path
 
 
-def publish(name: str, report: dict, plot) -> Path:
-    """Write reports/bench/<name>.json and, beside it, the figure `plot(report, path)` draws as <name>.png."""
-    path = write_report(name, report)
+def publish(name: str, report: dict, plot, device: str = "cpu") -> Path:
+    """Write reports/bench/<name>.json (with the machine and `device` the bench ran on) and, beside it,
+    the figure `plot(report, path)` draws as <name>.png."""
+    path = write_report(name, report, device)
     plot(report, path.with_suffix(".png"))
     return path

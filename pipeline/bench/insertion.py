@@ -16,54 +16,33 @@ import argparse
 import time
 from pathlib import Path
 
-import matplotlib
+import numpy as np
+import torch
+from matplotlib.figure import Figure
+from tqdm import tqdm
 
-matplotlib.use("Agg")
-import matplotlib.pyplot as plt  # noqa: E402
-import numpy as np  # noqa: E402
-import torch  # noqa: E402
-from tqdm import tqdm  # noqa: E402
-
-from pipeline.bench.common import median_seconds, publish  # noqa: E402
-from pipeline.data import cases as case_io  # noqa: E402
-from pipeline.data import interiorverse as iv  # noqa: E402
-from pipeline.metrics.insertion import case_scores  # noqa: E402
-from pipeline.models.insertion import (  # noqa: E402
+from pipeline.bench.common import median_seconds, publish
+from pipeline.data import cases as case_io
+from pipeline.metrics.insertion import case_scores
+from pipeline.models.insertion import (
     composite_gbuffer,
-    gbuffers_from_maps,
     insert_into,
     light_net_radiance,
-    prepare_scene,
+    prepare_view,
     render_case,
 )
-from pipeline.models.light_net import load_light_export  # noqa: E402
-from pipeline.models.light_net.branches import image_scale  # noqa: E402
-from pipeline.models.material_net import load_material_export, predict_maps  # noqa: E402
-from pipeline.models.render_layer import MCRenderLayer  # noqa: E402
+from pipeline.models.light_net import load_light_export
+from pipeline.models.material_net import load_material_export
+from pipeline.models.render_layer import MCRenderLayer
 
 SPP = (1, 2, 4, 8, 16, 32, 64)
 
 
-def _test_cases(root: Path) -> list[tuple[str, str]]:
-    views = [(s, v) for s in iv.read_split(root, "test") for v in iv.list_views(root, s)]
-    views = [sv for sv in views if case_io.has_cases(root, *sv)]
-    if not views:
-        raise iv.DatasetError(f"{root}: no test view with insertion cases (run `dvc repro synthesize`)")
-    return views
-
-
-def _maps(root: Path, scene: str, view: str) -> dict:
-    check = iv.read_view(root, scene, view)
-    if check.maps is None:
-        raise iv.DatasetError(f"{root}/{scene}/{view}: {check.rejections('test')}")
-    return check.maps
-
-
 def speed(root, material, light, resolutions, spps, repeats: int) -> list[dict]:
     """Seconds per insertion of a mirror sphere at the centre of the first test photo."""
-    scene, view = _test_cases(root)[0]
-    im = _maps(root, scene, view)["im"]
-    fov = float(iv.read_cameras(root, scene)[view]["fov_x_deg"])
+    scene, view = case_io.case_views(root, "test")[0]
+    maps, _, camera = case_io.read_case_view(root, scene, view, "test")
+    im, fov = maps["im"], float(camera["fov_x_deg"])
     rows = []
     for H, W in resolutions:
         x = torch.from_numpy(np.ascontiguousarray(im)).permute(2, 0, 1)[None]
@@ -73,8 +52,8 @@ def speed(root, material, light, resolutions, spps, repeats: int) -> list[dict]:
             pixels = {}
 
             def insert(photo=photo, H=H, W=W, spp=spp, pixels=pixels):
-                prepared = prepare_scene(photo, *material, light, fov)
-                _, pix = insert_into(prepared, H // 2, W // 2, "sphere", "mirror", None, fov, spp, 0)
+                prepared = prepare_view(photo, *material, light, fov)
+                _, pix = insert_into(prepared, H // 2, W // 2, "sphere", "mirror", None, spp, 0)
                 pixels["n"] = len(pix)
 
             rows.append(
@@ -92,32 +71,23 @@ def speed(root, material, light, resolutions, spps, repeats: int) -> list[dict]:
 def accuracy(root, material, light, spps) -> dict:
     """Mean PSNR / log-L1 of LightNet's object renders against Mitsuba over the test insertion cases, and
     the render seconds per case, per spp (same cases, same seed)."""
-    net, meta = material
     per_spp = {s: {"psnr": [], "log_l1": [], "seconds": 0.0} for s in spps}
-    views = _test_cases(root)
-    for scene, view in tqdm(views, desc="insertion accuracy", unit="view"):
-        maps = _maps(root, scene, view)
-        H, W = maps["im"].shape[:2]
-        objects = [c for c in case_io.read_cases(root, scene, view, H, W) if c.kind == "object"]
-        fov = float(iv.read_cameras(root, scene)[view]["fov_x_deg"])
-        im = torch.from_numpy(np.ascontiguousarray(maps["im"])).float().permute(2, 0, 1)[None]
-        pred = gbuffers_from_maps(predict_maps(net, meta, maps["im"]), maps["mask"][..., 0] > 0.5)
-        with torch.no_grad():
-            ctx = light.encode(im, pred["depth"], fov)
-        scale = float(image_scale(im)[0])
-        photo = im[0].permute(1, 2, 0)
+    for scene, view in tqdm(case_io.case_views(root, "test"), desc="insertion accuracy", unit="view"):
+        maps, cases, camera = case_io.read_case_view(root, scene, view, "test")
+        objects = [c for c in cases if c.kind == "object"]
+        v = prepare_view(maps["im"], *material, light, float(camera["fov_x_deg"]), mask=maps["mask"][..., 0] > 0.5)
+        pred, fov, scale = v.pred, v.fov, float(v.scale)
         for c in objects:
             shading = composite_gbuffer(
                 pred, c.pixel, albedo=c.albedo, material=c.material, normal=c.normal, depth=c.depth
             )
             for s in spps:
                 t0 = time.perf_counter()
+                light_fn = light_net_radiance(v.net, v.ctx_pred, pred, fov, 0)  # afresh: each spp on the same seed
                 with torch.no_grad():
-                    rgb = render_case(
-                        MCRenderLayer(spp=s), shading, fov, c.pixel, light_net_radiance(light, ctx, pred, fov, 0), 0
-                    )
+                    rgb = render_case(MCRenderLayer(spp=s), shading, fov, c.pixel, light_fn, 0)
                 per_spp[s]["seconds"] += time.perf_counter() - t0
-                sc = case_scores(rgb, c.radiance, photo, c.pixel, scale)
+                sc = case_scores(rgb, c.radiance, v.photo, c.pixel, scale)
                 per_spp[s]["psnr"].append(sc["psnr"])
                 per_spp[s]["log_l1"].append(sc["log_l1"])
     n = len(per_spp[spps[0]]["psnr"])
@@ -154,7 +124,8 @@ def run(
 
 
 def plot(report: dict, path) -> None:
-    fig, axes = plt.subplots(1, 2, figsize=(9, 3.4))
+    fig = Figure(figsize=(9, 3.4))
+    axes = fig.subplots(1, 2)
     for H, W in sorted({(r["height"], r["width"]) for r in report["speed"]}):
         rs = [r for r in report["speed"] if r["height"] == H]
         axes[0].plot([r["spp"] for r in rs], [r["seconds_per_insertion"] for r in rs], "o-", label=f"{W}x{H}")
@@ -177,7 +148,6 @@ def plot(report: dict, path) -> None:
     ax.set_ylabel(f"PSNR vs Mitsuba (dB, {report['accuracy']['cases']} test objects)")
     fig.tight_layout()
     fig.savefig(path, dpi=120)
-    plt.close(fig)
 
 
 def main(argv=None) -> None:

@@ -29,18 +29,15 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-import matplotlib
+import numpy as np
+import torch
+from matplotlib.figure import Figure
+from tqdm import tqdm
 
-matplotlib.use("Agg")
-import matplotlib.pyplot as plt  # noqa: E402
-import numpy as np  # noqa: E402
-import torch  # noqa: E402
-from tqdm import tqdm  # noqa: E402
-
-from pipeline.bench.common import publish  # noqa: E402
-from pipeline.bench.light_net import evaluation_system  # noqa: E402
-from pipeline.data.lighting import ViewLighting, probe_rays  # noqa: E402
-from pipeline.metrics.lighting import ray_classes  # noqa: E402
+from pipeline.bench.common import publish
+from pipeline.bench.light_net import evaluation_system
+from pipeline.data.lighting import ViewLighting, probe_rays
+from pipeline.metrics.lighting import ray_classes
 
 KINDS = ViewLighting.KINDS
 RAY_CLASSES = ("hit", "uncertain", "miss")  # the keys of `ray_classes`, each added by every EnergyTally.add
@@ -201,8 +198,11 @@ def run(
 
 
 def plot(report: dict, path) -> None:
+    """The pooled nMSE (dimensionless) of each predictor per probe kind, and per kind LightNet's probe
+    means against the true ones (radiance, log-log)."""
     kinds = list(report["kinds"])
-    fig, axes = plt.subplots(1, 1 + len(kinds), figsize=(4.6 * (1 + len(kinds)), 4.0))
+    fig = Figure(figsize=(4.6 * (1 + len(kinds)), 4.0))
+    axes = fig.subplots(1, 1 + len(kinds))
     ax = axes[0]
     width = 0.8 / max(len(kinds), 1)
     labels = ["LightNet", "probe-mean\noracle", "LightNet's\nenergy only", "LightNet at\ntrue energy"]
@@ -235,7 +235,6 @@ def plot(report: dict, path) -> None:
         ax.legend(fontsize=7)
     fig.tight_layout()
     fig.savefig(path, dpi=120)
-    plt.close(fig)
 
 
 def main(argv=None) -> None:

@@ -19,19 +19,16 @@ import argparse
 import time
 from pathlib import Path
 
-import matplotlib
+import torch
+from matplotlib.figure import Figure
+from tqdm import tqdm
 
-matplotlib.use("Agg")
-import matplotlib.pyplot as plt  # noqa: E402
-import torch  # noqa: E402
-from tqdm import tqdm  # noqa: E402
-
-from pipeline.bench.common import median_seconds, publish  # noqa: E402
-from pipeline.bench.scenes import BoxRoom, ssrt_rays  # noqa: E402
-from pipeline.models.light_net import MODES, LightNet  # noqa: E402
-from pipeline.models.light_net.hyper import HyperMLP  # noqa: E402
-from pipeline.models.render_layer import MCRenderLayer  # noqa: E402
-from pipeline.ops.encodings import fourier_dim  # noqa: E402
+from pipeline.bench.common import median_seconds, publish
+from pipeline.bench.scenes import BoxRoom, ssrt_rays
+from pipeline.models.light_net import MODES, LightNet
+from pipeline.models.light_net.hyper import HyperMLP
+from pipeline.models.render_layer import MCRenderLayer
+from pipeline.ops.encodings import fourier_dim
 
 SMALL = {
     "local": {"backbone": "small", "levels": 3, "frequencies": 4, "hidden": 64, "layers": 3},
@@ -290,7 +287,10 @@ def run(
 
 
 def plot(report: dict, path) -> None:
-    fig, axes = plt.subplots(1, 3, figsize=(14, 3.6))
+    """Three panels: queries/s per mode and resolution; re-render PSNR (dB) against the out-of-view query
+    fraction per threshold; full-frame re-render seconds against relMSE to the default setting."""
+    fig = Figure(figsize=(14, 3.6))
+    axes = fig.subplots(1, 3)
     for H, W in sorted({(r["height"], r["width"]) for r in report["speed"]}):
         rs = [r for r in report["speed"] if r["height"] == H]
         axes[0].bar([f"{r['mode']}\n{W}x{H}" for r in rs], [r["queries_per_second"] / 1e3 for r in rs])
@@ -329,7 +329,6 @@ def plot(report: dict, path) -> None:
         ax.legend(fontsize=7)
     fig.tight_layout()
     fig.savefig(path, dpi=120)
-    plt.close(fig)
 
 
 def main(argv=None) -> None:

@@ -11,15 +11,13 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-import matplotlib
+import torch
+from matplotlib.figure import Figure
+from matplotlib.ticker import NullFormatter
+from tqdm import tqdm
 
-matplotlib.use("Agg")
-import matplotlib.pyplot as plt  # noqa: E402
-import torch  # noqa: E402
-from tqdm import tqdm  # noqa: E402
-
-from pipeline.bench.common import median_seconds, publish  # noqa: E402
-from pipeline.models.material_net import MaterialNet, parameter_count  # noqa: E402
+from pipeline.bench.common import median_seconds, publish
+from pipeline.models.material_net import MaterialNet, parameter_count
 
 BACKBONES = ("small", "resnet34", "densenet121")
 CONF = Path(__file__).resolve().parents[2] / "conf"
@@ -115,22 +113,24 @@ def run(
 
 
 def plot(report: dict, path) -> None:
+    """Test error per metric against inference milliseconds per image (log scale), one point per backbone."""
     rows = [r for r in report["results"] if "accuracy" in r]
     keys = ("albedo_mse", "normal_angle_deg", "roughness_mse", "depth_log_mse")
-    fig, axes = plt.subplots(1, len(keys), figsize=(3.2 * len(keys), 3))
+    fig = Figure(figsize=(3.2 * len(keys), 3))
+    axes = fig.subplots(1, len(keys))
     for ax, key in zip(axes, keys, strict=True):
         for r in rows:
             ms = 1e3 * r["speed"][0]["inference_seconds"]
             ax.plot(ms, r["accuracy"][key], "o")
             ax.annotate(f"{r['backbone']}\n{r['parameters'] / 1e6:.1f}M", (ms, r["accuracy"][key]), fontsize=7)
         ax.set_xscale("log")
+        ax.xaxis.set_minor_formatter(NullFormatter())  # the minor labels of a short log axis overlap
         ax.set_xlabel(f"inference ms/image ({rows[0]['speed'][0]['width']}x{rows[0]['speed'][0]['height']})")
         ax.set_ylabel(f"test {key} (lower is better)")
     if rows:
         fig.suptitle(f"after {rows[0]['accuracy']['train_seconds']:.0f} s of CPU training each", fontsize=9)
     fig.tight_layout()
     fig.savefig(path, dpi=120)
-    plt.close(fig)
 
 
 def main(argv=None) -> None:

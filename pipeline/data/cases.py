@@ -2,7 +2,7 @@
 
 Written by `synthesize` (`pipeline.data.synth.cases`) for val and test views; read by the `edit` stage
 and the tests. Pixels are flat indices into the view's (H, W) grid (row-major); positions and normals
-are in the view space of DESIGN.md section 3; depth is z-depth in metres; radiance is HDR, the mean of
+are in the view space of docs/design.md, section 3; depth is z-depth in metres; radiance is HDR, the mean of
 `spp` path samples through the pixel centre, with its standard error.
 """
 
@@ -16,6 +16,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from pipeline.data import interiorverse as iv
 from pipeline.data.interiorverse import DatasetError
 
 # array -> channels (None: one value per pixel)
@@ -68,6 +69,30 @@ def write_cases(root: str | Path, scene: str, view: str, description: dict, arra
 def has_cases(root: str | Path, scene: str, view: str) -> bool:
     """Either file marks a view with cases (`read_cases` then refuses a missing partner, naming it)."""
     return any(p.is_file() for p in paths(root, scene, view))
+
+
+def case_views(root: str | Path, split: str) -> list[tuple[str, str]]:
+    """(scene, view) of every view of `split` that has cases, in split-file and view order; refused,
+    naming the root, when none has."""
+    views = [(s, v) for s in iv.read_split(root, split) for v in iv.list_views(root, s)]
+    views = [sv for sv in views if has_cases(root, *sv)]
+    if not views:
+        raise DatasetError(f"{root}: no {split} view has insertion/editing cases (synth.cases.enabled)")
+    return views
+
+
+def read_case_view(root: str | Path, scene: str, view: str, split: str) -> tuple[dict, list[Case], dict]:
+    """One view of `split` with cases, read and checked (`interiorverse.read_view`; refused with its
+    rejections), its cases and its camera (`cameras.json`): (maps, cases, camera)."""
+    check = iv.read_view(root, scene, view)
+    if check.maps is None:
+        raise DatasetError(f"{root}/{scene}/{view}: {check.rejections(split)}")
+    H, W = check.maps["im"].shape[:2]
+    cases = read_cases(root, scene, view, H, W)
+    camera = (iv.read_cameras(root, scene) or {}).get(view)
+    if camera is None:
+        raise DatasetError(f"{root}/{scene}/cameras.json: no camera for view {view}")
+    return check.maps, cases, camera
 
 
 def read_cases(root: str | Path, scene: str, view: str, height: int, width: int) -> list[Case]:

@@ -1,4 +1,4 @@
-"""The lighting ground truth of one view, typed (DESIGN.md section 4; layouts in `ops.envmap`).
+"""The lighting ground truth of one view, typed (docs/design.md, section 4.1; layouts in `ops.envmap`).
 
 On disk (`interiorverse.read_light`, preprocess shards) it is a flat dict of arrays keyed
 `surf_*` / `free_*`; everything that trains on or scores against it uses these classes instead, so the
@@ -13,7 +13,7 @@ import numpy as np
 import torch
 
 from pipeline.ops.camera import RAY_OFFSET_M
-from pipeline.ops.envmap import stratified_square, texel_directions
+from pipeline.ops.envmap import square_centres, texel_directions
 
 # A predicted texel is the mean of the model's radiance over directions spread over the texel, as the
 # ground truth is (docs/data.md): in evaluation the centres of a k x k grid of the texel's solid angle.
@@ -134,7 +134,7 @@ def probe_rays(
             ti = torch.stack([torch.randperm(T, generator=generator)[:texels] for _ in range(len(pi))])
         n_t = ti.shape[1]
         if texels is None:
-            u = stratified_square(strata)[0]
+            u = square_centres(strata)
         else:
             u = torch.rand(len(pi) * n_t, 1, 2, generator=generator, dtype=torch.float64)
         direction = pr.texel_directions(

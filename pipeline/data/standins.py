@@ -15,6 +15,7 @@ filled), `splits.mat` with 1-based train/test indices, and normal/mask PNGs numb
 
 from __future__ import annotations
 
+import io
 import json
 import shutil
 from collections.abc import Mapping, Sequence
@@ -118,13 +119,19 @@ def build_nyuv2(views: Sequence[dict], out: str | Path, test_every: int = 3) -> 
     n = len(views)
     test = [i for i in range(n) if i % test_every == 0]
     train = [i for i in range(n) if i % test_every != 0]
+    mat = io.BytesIO()
     savemat(
-        out / "splits.mat",
+        mat,
         {"trainNdxs": np.array(train, np.float64)[:, None] + 1, "testNdxs": np.array(test, np.float64)[:, None] + 1},
     )
+    # the MAT header's 116-byte text ends "Created on: <date and time>": a fixed text instead, so the same
+    # views give the same bytes (finetune's DVC out, hashed into dvc.lock)
+    (out / "splits.mat").write_bytes(MAT_HEADER + mat.getvalue()[len(MAT_HEADER) :])
     (out / "SOURCE.txt").write_text(f"{NYU_SOURCE}: built from synthetic views, not NYU Depth v2\n")
     return {"train": train, "test": test}
 
+
+MAT_HEADER = b"MATLAB 5.0 MAT-file, written by invrender".ljust(116)  # a MAT-file's descriptive text, fixed
 
 STANDIN_DEFAULTS = {"points": 40, "comparisons": 60, "nyu_test_every": 3}
 

@@ -1,4 +1,4 @@
-"""NYUv2 depth scores (DESIGN.md section 6; protocol notes section 2.6). One image at a time, (H, W) arrays
+"""NYUv2 depth scores (docs/design.md, section 6.6). One image at a time, (H, W) arrays
 in metres; the prediction may have any scale (all scores here are scale-invariant)."""
 
 from __future__ import annotations

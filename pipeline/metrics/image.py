@@ -1,4 +1,4 @@
-"""Image comparisons of HDR renders (DESIGN.md section 6): one tone map, PSNR and SSIM on it.
+"""Image comparisons of HDR renders (docs/design.md, section 6.3): one tone map, PSNR and SSIM on it.
 
 The tone map is x / (2 s), then Reinhard x / (1 + x), with s the image mean: values lie in [0, 1)
 whatever the exposure, and the same map serves every row of a comparison.

@@ -1,4 +1,4 @@
-"""Lighting errors (DESIGN.md section 6), one definition each, on exposure-normalised radiance.
+"""Lighting errors (docs/design.md, section 6.2), one definition each, on exposure-normalised radiance.
 
 Every function takes radiances pred, target (M, 3) and, where it says so, scale (M,): the mean of the
 image each sample belongs to. Dividing by it makes the errors exposure-invariant (a room lit 10x brighter

@@ -1,4 +1,4 @@
-"""NYUv2 normal scores (DESIGN.md section 6; protocol notes section 2.4): angles in degrees between a
+"""NYUv2 normal scores (docs/design.md, section 6.5): angles in degrees between a
 prediction and the ground truth over a valid mask, per image; and the pooled statistics of all pixels."""
 
 from __future__ import annotations

@@ -1,4 +1,4 @@
-"""Synthetic-test metrics (DESIGN.md section 6), per image, over the valid mask.
+"""Synthetic-test metrics (docs/design.md, section 6.1), per image, over the valid mask.
 
 All inputs are (B, C, H, W) tensors with a (B, 1, H, W) bool mask; every function returns (B,) float64
 per-image values, NaN where an image has no valid pixel (callers average over finite values and count

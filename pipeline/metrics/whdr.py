@@ -1,4 +1,4 @@
-"""IIW Weighted Human Disagreement Rate (DESIGN.md section 6; protocol notes section 1).
+"""IIW Weighted Human Disagreement Rate (docs/design.md, section 6.4).
 
 Points are looked up at row int(y * H), column int(x * W) (truncation, no interpolation); a point's
 reflectance is the mean of its three channels, floored at 1e-10. A comparison is skipped when its

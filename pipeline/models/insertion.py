@@ -14,10 +14,12 @@ All tensors are of one view: G-buffers depth (1, H, W) metres, normal/albedo (1,
 from __future__ import annotations
 
 import math
+from dataclasses import dataclass
 
 import numpy as np
 import torch
 
+from pipeline.models.light_net.branches import image_scale
 from pipeline.models.material_net import predict_maps
 from pipeline.models.render_layer import MCRenderLayer, PointRadianceFn
 from pipeline.ops.camera import backproject, pixel_directions
@@ -154,24 +156,66 @@ def edited_gbuffer(
     return composite_gbuffer(gbuffer, pixels, albedo=alb, material=mat)
 
 
-def prepare_scene(im, material_net, meta: dict, light_net, fov: float):
-    """A linear photo (H, W, 3) -> (photo (H, W, 3), image (1, 3, H, W), predicted G-buffers, LightNet,
-    its context), what `insert_into` and `invrender edit` work on."""
-    gb = gbuffers_from_maps(predict_maps(material_net, meta, im))
+@dataclass
+class PreparedView:
+    """One photo made ready for insertion and editing, by `prepare_view`: photo (H, W, 3) and image
+    (1, 3, H, W) the same linear pixels (float32), scale its mean radiance (0-dim, `image_scale`), fov its
+    horizontal field of view (degrees), net LightNet (eval mode); pred the MaterialNet G-buffers of the
+    photo and ctx_pred LightNet's context of the photo over their depth; with ground-truth maps also gt
+    and ctx_gt, the same over the ground truth."""
+
+    photo: torch.Tensor
+    image: torch.Tensor
+    scale: torch.Tensor
+    fov: float
+    net: torch.nn.Module
+    pred: dict
+    ctx_pred: dict
+    gt: dict | None = None
+    ctx_gt: dict | None = None
+
+
+def prepare_view(
+    im: np.ndarray,
+    material_net,
+    meta: dict,
+    light_net,
+    fov: float,
+    mask: np.ndarray | None = None,
+    gt_maps: dict | None = None,
+) -> PreparedView:
+    """A linear photo (H, W, 3) with its horizontal fov (degrees): MaterialNet's G-buffers of it and
+    LightNet's context of them. `mask` (H, W) bool zeroes depth outside the view's valid pixels (as
+    `train_lighting` feeds LightNet); `gt_maps` (InteriorVerse maps of the view, `gbuffers_from_maps`)
+    adds the ground-truth G-buffers, under the same mask, and their context."""
     image = _chw(im)
+    pred = gbuffers_from_maps(predict_maps(material_net, meta, im), mask)
+    gt = gbuffers_from_maps(gt_maps, mask) if gt_maps is not None else None
+    net = light_net.eval()
     with torch.no_grad():
-        ctx = light_net.eval().encode(image, gb["depth"], fov)
-    return torch.from_numpy(im), image, gb, light_net, ctx
+        ctx_pred = net.encode(image, pred["depth"], fov)
+        ctx_gt = net.encode(image, gt["depth"], fov) if gt is not None else None
+    return PreparedView(
+        photo=image[0].permute(1, 2, 0),
+        image=image,
+        scale=image_scale(image)[0],
+        fov=float(fov),
+        net=net,
+        pred=pred,
+        ctx_pred=ctx_pred,
+        gt=gt,
+        ctx_gt=ctx_gt,
+    )
 
 
 def insert_into(
-    scene, row: int, col: int, kind: str, material: str, radius: float | None, fov: float, spp: int, seed: int
+    view: PreparedView, row: int, col: int, kind: str, material: str, radius: float | None, spp: int, seed: int
 ):
     """An object (`ops.primitives.object_spheres` of `kind`, one of OBJECT_MATERIALS) resting on the predicted
     surface at pixel (row, col), its size `radius` metres (default: 1/16 of the view), rendered at `spp`
-    under LightNet on a `prepare_scene`: (composited photo (H, W, 3), object pixels (M,))."""
-    photo_t, _, gb, net, ctx = scene
-    H, W = photo_t.shape[:2]
+    under LightNet on a `prepare_view`: (composited photo (H, W, 3), object pixels (M,))."""
+    gb, fov = view.pred, view.fov
+    H, W = view.photo.shape[:2]
     at = f"{row},{col}"
     if not (0 <= row < H and 0 <= col < W):
         raise InsertionError(f"--at {at}: pixel (row {row}, col {col}) is outside the {W}x{H} image")
@@ -200,7 +244,7 @@ def insert_into(
         normal=obj["normal"].float(),
         depth=obj["depth"].float(),
     )
-    light = light_net_radiance(net, ctx, gb, fov, seed)
+    light = light_net_radiance(view.net, view.ctx_pred, gb, fov, seed)
     with torch.no_grad():
         rgb = render_case(MCRenderLayer(spp=spp), shading, fov, obj["pixel"], light, seed)
-    return composite_image(photo_t, obj["pixel"], rgb), obj["pixel"]
+    return composite_image(view.photo, obj["pixel"], rgb), obj["pixel"]

@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from collections.abc import Callable
+from collections.abc import Callable, Mapping
 
 import torch
 from torch import nn
@@ -40,6 +40,18 @@ class MCRenderLayer(nn.Module):
         self.estimator, self.spp, self.adaptive = estimator, int(spp), bool(adaptive)
         self.li_size, self.chunk = tuple(li_size), int(chunk)
 
+    @classmethod
+    def from_config(cls, render: Mapping, spp_key: str = "spp") -> MCRenderLayer:
+        """The layer the `conf/render/` group describes (estimator, adaptive, li_size, chunk), at
+        render[spp_key] samples per pixel (`spp` for training, `eval_spp` for evaluation)."""
+        return cls(
+            estimator=str(render["estimator"]),
+            spp=int(render[spp_key]),
+            adaptive=bool(render.get("adaptive", False)),
+            li_size=tuple(render.get("li_size", (8, 16))),
+            chunk=int(render.get("chunk", 1 << 16)),
+        )
+
     def forward(
         self,
         normal: torch.Tensor,
@@ -49,10 +61,11 @@ class MCRenderLayer(nn.Module):
         mask: torch.Tensor,
         fov_x: float,
         radiance: ImageRadianceFn,
-        generator: torch.Generator | None = None,
+        generator: torch.Generator,
     ) -> dict[str, torch.Tensor]:
-        """normal/albedo (B, 3, H, W), roughness/metallic/mask (B, 1, H, W), fov_x degrees.
-        Returns diffuse, specular, rgb (B, 3, H, W) (0 outside the mask) and counts (B, 1, H, W)."""
+        """normal/albedo (B, 3, H, W), roughness/metallic/mask (B, 1, H, W), fov_x degrees; `generator`
+        draws the sample directions (`mc.estimate`). Returns diffuse, specular, rgb (B, 3, H, W) (0 outside
+        the mask) and counts (B, 1, H, W)."""
         B, _, H, W = normal.shape
         flat = lambda x: x.permute(0, 2, 3, 1).reshape(B * H * W, -1)  # noqa: E731
         valid = flat(mask).reshape(-1) > 0.5
@@ -94,12 +107,12 @@ class MCRenderLayer(nn.Module):
         fov_x,
         pixels: torch.Tensor,
         radiance: PointRadianceFn,
-        generator: torch.Generator | None = None,
+        generator: torch.Generator,
     ) -> tuple[torch.Tensor, torch.Tensor]:
         """Re-render flat pixel indices (M,) (into B*H*W) of G-buffers: depth (B, H, W) z-depth metres,
         normal/albedo (B, 3, H, W), material (B, 2, H, W) roughness+metallic; fov_x degrees, one float or
         (B,). Shading points are the back-projected pixels; secondary rays start RAY_OFFSET_M above them
-        along the normal. Returns (rgb (M, 3), image index (M,))."""
+        along the normal; `generator` draws the sample directions. Returns (rgb (M, 3), image index (M,))."""
         B, _, H, W = gbuffer["normal"].shape
         b = pixels // (H * W)
         rc = pixels % (H * W)

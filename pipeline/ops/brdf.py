@@ -1,4 +1,4 @@
-"""The paper's GGX microfacet BRDF in the metallic workflow (DESIGN.md section 5).
+"""The paper's GGX microfacet BRDF in the metallic workflow (docs/design.md, section 5).
 
     alpha = roughness^2 (clamped to ALPHA_MIN, the same clamp the sampler and its pdf use)
     diffuse  = (1 - m) * albedo / pi

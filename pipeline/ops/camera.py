@@ -1,4 +1,4 @@
-"""Pinhole camera in the DESIGN.md convention (OpenGL view space, pixel centres at +0.5, z-depth).
+"""Pinhole camera (docs/design.md, section 3): OpenGL view space, pixel centres at +0.5, z-depth.
 
 fov_x is the horizontal field of view in degrees; fx = fy = (W/2)/tan(fov_x/2), cx = W/2, cy = H/2.
 The view-space point at pixel (i, j) with z-depth z is z * ((j+.5-cx)/fx, -(i+.5-cy)/fy, -1).

@@ -4,7 +4,7 @@ Hemisphere maps (surface probes): rows over the polar angle theta in [0, pi/2] f
 columns over the azimuth phi in [0, 2 pi) from the tangent of `frames.orthonormal_basis` towards its
 bitangent; texel (a, b) is centred at theta = (a + .5)/rows * pi/2, phi = (b + .5)/cols * 2 pi.
 Sphere maps (free points): rows over theta in [0, pi] from +y (up), columns over phi from -z (forward)
-towards +x. Directions point where the light comes from (DESIGN.md section 3).
+towards +x. Directions point where the light comes from (docs/design.md, section 3).
 
 A texel's value is the mean radiance over its solid angle (as a box-filtered environment map), not the
 radiance along its centre ray: `texel_directions` draws directions uniformly in solid angle inside
@@ -44,18 +44,24 @@ def sphere_directions(rows: int, cols: int) -> np.ndarray:
     return np.stack([np.sin(th) * np.sin(ph), np.cos(th), -np.sin(th) * np.cos(ph)], -1)
 
 
-def stratified_square(
-    k: int, count: int = 1, generator: torch.Generator | None = None, dtype=torch.float64
-) -> torch.Tensor:
-    """(count, k*k, 2) points of [0, 1)^2, one per cell of a k x k grid: jittered uniformly inside its
-    cell by `generator` (independently for each of `count` sets), or the cell centres when generator is
-    None (deterministic)."""
+def _square_cells(k: int, dtype) -> torch.Tensor:
+    """(k*k, 2) lower corners (i, j) of the cells of a k x k grid over [0, k)^2, row-major."""
     if k < 1:
-        raise ValueError(f"stratified_square: k={k} must be >= 1")
+        raise ValueError(f"k={k}: a k x k grid needs k >= 1")
     i, j = torch.meshgrid(torch.arange(k, dtype=dtype), torch.arange(k, dtype=dtype), indexing="ij")
-    cells = torch.stack([i.reshape(-1), j.reshape(-1)], -1).expand(count, -1, -1)
-    if generator is None:
-        return (cells + 0.5) / k
+    return torch.stack([i.reshape(-1), j.reshape(-1)], -1)
+
+
+def square_centres(k: int, dtype=torch.float64) -> torch.Tensor:
+    """(k*k, 2) centres of the cells of a k x k grid over [0, 1)^2, in `stratified_square`'s order (the
+    deterministic stratified points: no random number)."""
+    return (_square_cells(k, dtype) + 0.5) / k
+
+
+def stratified_square(k: int, count: int, generator: torch.Generator, dtype=torch.float64) -> torch.Tensor:
+    """(count, k*k, 2) points of [0, 1)^2, one per cell of a k x k grid, jittered uniformly inside its
+    cell by `generator` (independently for each of `count` sets)."""
+    cells = _square_cells(k, dtype).expand(count, -1, -1)
     return (cells + torch.rand(count, k * k, 2, generator=generator, dtype=dtype)) / k
 
 

@@ -1,6 +1,6 @@
 """Monte Carlo estimate of reflected radiance, I = 1/n sum f(wo, wi_k) L_i(p, wi_k) cos / pdf(wi_k).
 
-Estimators (DESIGN.md section 5):
+Estimators (docs/design.md, section 5):
   importance  the paper's: BRDF mixture sampling (GGX visible normals + cosine), `sampling.sample`
   uniform     uniform hemisphere sampling, pdf 1/(2 pi)
   li2020      Li et al. 2020's discretised hemisphere: n_theta x n_phi cell centres, uniform in theta in
@@ -135,7 +135,7 @@ def estimate(
     roughness,
     metallic,
     counts: torch.Tensor | int,
-    generator: torch.Generator | None = None,
+    generator: torch.Generator,
     estimator: str = "importance",
     chunk: int = 1 << 16,
     li_size: tuple[int, int] = (8, 16),
@@ -144,9 +144,13 @@ def estimate(
 
     normal, wo (N, 3) unit (view space); albedo (N, 3); roughness, metallic (N,); counts: samples per
     point (N,) long or one int for all (ignored by li2020, which uses its n_theta x n_phi cells);
-    radiance_fn(pixel index (M,), wi (M, 3)) -> L_i (M, 3). Points with 0 samples return 0."""
+    radiance_fn(pixel index (M,), wi (M, 3)) -> L_i (M, 3). Points with 0 samples return 0. `generator`
+    draws the seed of the counter-based numbers (one draw per call; li2020, whose directions are fixed,
+    draws none)."""
     if estimator not in ESTIMATORS:
         raise ValueError(f"estimator={estimator!r}: choose one of {ESTIMATORS}")
+    if not isinstance(generator, torch.Generator):
+        raise TypeError(f"generator={generator!r}: pass a torch.Generator (no fallback to the global RNG)")
     N, dev, dt = normal.shape[0], normal.device, normal.dtype
     li_dirs = li_w = None
     if estimator == "li2020":

@@ -8,8 +8,8 @@ while *facing* it (n . w < 0) and does not cross the pixel's facet (the plane th
 point with its normal) only further ahead: a depth map is a staircase, and a ray grazing a plane dips
 behind its steps long before it reaches the plane. The gap is 0 when the ray crosses the facet inside
 the pixel (a confident hit); otherwise it is how far behind the surface the ray already was when it
-entered the pixel, large when it slipped behind a foreground object's silhouette (DESIGN.md:
-u = tanh(k gap) then hands the ray to the out-of-view branch).
+entered the pixel, large when it slipped behind a foreground object's silhouette (docs/design.md,
+section 5: u = tanh(k gap) then hands the ray to the out-of-view branch).
 
 Speed: a min-depth pyramid lets a ray skip a whole 2^L x 2^L cell when its depth over the cell stays in
 front of the nearest surface in it; the level goes up after every skip and down when a cell cannot be

@@ -56,17 +56,16 @@ from pipeline.models.insertion import (
     composite_gbuffer,
     composite_image,
     edited_gbuffer,
-    gbuffers_from_maps,
     light_net_radiance,
+    prepare_view,
     render_case,
 )
 from pipeline.models.light_net import load_light_export
-from pipeline.models.light_net.branches import image_scale
-from pipeline.models.material_net import load_material_export, predict_maps
+from pipeline.models.material_net import load_material_export
+from pipeline.models.render_layer import MCRenderLayer
 from pipeline.ops.camera import backproject
 from pipeline.ops.envmap import sphere_lookup
-from pipeline.systems.lighting import render_layer
-from pipeline.systems.lighting_baselines import mean_training_radiance
+from pipeline.systems.lighting_baselines import constant_light, mean_training_radiance, scaled_constant_light
 from pipeline.tracking import publish, stage_run
 from pipeline.tracking.figures import insertion_grid
 
@@ -86,15 +85,15 @@ def case_centre(case: case_io.Case, gt: dict, fov: float, w2v: np.ndarray) -> to
 def score_view(ctx: dict, cases: list[case_io.Case], cfg: DictConfig, rows: tuple = ROWS) -> list[dict]:
     """`rows` (all by default) of every case of one view:
     [{"case", "rows": {row: scores}, "renders": {row: (M, 3)}}]."""
-    fov, gt, pred, im, scale = ctx["fov"], ctx["gt"], ctx["pred"], ctx["im"], ctx["scale"]
-    photo = im[0].permute(1, 2, 0)
+    view = ctx["view"]
+    fov, gt, pred, photo, scale = view.fov, view.gt, view.pred, view.photo, view.scale
     constants, free = ctx["constants"], ctx["light"].free
-    net, seed = ctx["net"], int(ctx["seed"])
+    net, seed = view.net, int(ctx["seed"])
     lights = {
-        "lightnet": light_net_radiance(net, ctx["ctx_pred"], pred, fov, seed),
-        "lightnet_gt_gbuffers": light_net_radiance(net, ctx["ctx_gt"], gt, fov, seed),
-        "constant": lambda idx, o, wi, b: constants.constant.expand(len(wi), 3),
-        "scaled_constant": lambda idx, o, wi, b: (constants.ratio * scale).expand(len(wi), 3),
+        "lightnet": light_net_radiance(net, view.ctx_pred, pred, fov, seed),
+        "lightnet_gt_gbuffers": light_net_radiance(net, view.ctx_gt, gt, fov, seed),
+        "constant": constant_light(constants),
+        "scaled_constant": scaled_constant_light(constants, scale),
     }
     out = []
     for case in cases:
@@ -208,18 +207,15 @@ def stage_setup(cfg: DictConfig) -> dict:
     net, _ = load_light_export(cfg.light_path)
     train = ShardDataset(cfg.data_dir, "train", lighting=True)
     render = OmegaConf.to_container(cfg.render, resolve=True)
-    views = [(s, v) for s in iv.read_split(root, str(cfg.split)) for v in iv.list_views(root, s)]
-    views = [sv for sv in views if case_io.has_cases(root, *sv)]
-    if not views:
-        raise iv.DatasetError(f"{root}: no {cfg.split} view has insertion/editing cases (synth.cases.enabled)")
+    views = case_io.case_views(root, str(cfg.split))
     mb.init_mitsuba(mb.choose_variant("auto"))
     return {
         "root": root,
         "material": (material_net, material_meta),
         "net": net.eval(),
         "constants": mean_training_radiance(DataLoader(train, batch_size=16, collate_fn=collate_views)),
-        "layer": render_layer(render, "eval_spp"),
-        "oracle_layer": render_layer({**render, "oracle_spp": int(cfg.oracle.spp)}, "oracle_spp"),
+        "layer": MCRenderLayer.from_config(render, "eval_spp"),
+        "oracle_layer": MCRenderLayer.from_config({**render, "spp": int(cfg.oracle.spp)}),
         "views": views,
         "max_depth": int(_dataset_record(root)["config"]["max_depth"]),
     }
@@ -228,54 +224,38 @@ def stage_setup(cfg: DictConfig) -> dict:
 def view_context(
     shared: dict, scene: str, view: str, cfg: DictConfig, oracle: bool = True
 ) -> tuple[dict, list[case_io.Case]]:
-    """One view read and checked, its G-buffers predicted, LightNet's contexts and the oracle built:
-    (the context `score_view` takes, the view's cases)."""
-    root, split = shared["root"], str(cfg.split)
-    check = iv.read_view(root, scene, view)
-    if check.maps is None:
-        raise iv.DatasetError(f"{root}/{scene}/{view}: {check.rejections(split)}")
-    maps = check.maps
-    H, W = maps["im"].shape[:2]
-    cases = case_io.read_cases(root, scene, view, H, W)
-    camera = (iv.read_cameras(root, scene) or {}).get(view)
-    if camera is None:
-        raise iv.DatasetError(f"{root}/{scene}/cameras.json: no camera for view {view}")
+    """One view read and checked, prepared (`prepare_view`: its G-buffers predicted, LightNet's contexts
+    of them and of the ground truth) and the oracle built: (the context `score_view` takes, the view's
+    cases)."""
+    root = shared["root"]
+    maps, cases, camera = case_io.read_case_view(root, scene, view, str(cfg.split))
     light_file = iv.light_path(root, scene, view)
     light = ViewLighting.from_arrays(iv.read_light(light_file))
     if not len(light.free):
         raise iv.DatasetError(f"{light_file}: no free-point probe (the nearest-probe row needs one)")
     room = Room.from_json(json.loads((root / scene / "scene.json").read_text()))
-    fov = float(camera["fov_x_deg"])
-    im = torch.from_numpy(np.ascontiguousarray(maps["im"])).float().permute(2, 0, 1)[None]
     # predicted depth is zeroed outside the view's valid mask too, as `train_lighting` feeds LightNet
     mask = maps["mask"][..., 0] > 0.5
-    gt = gbuffers_from_maps(maps, mask)
-    pred = gbuffers_from_maps(predict_maps(*shared["material"], maps["im"]), mask)
-    net, view_id = shared["net"], f"{scene}/{view}"
+    prepared = prepare_view(
+        maps["im"], *shared["material"], shared["net"], float(camera["fov_x_deg"]), mask=mask, gt_maps=maps
+    )
+    view_id = f"{scene}/{view}"
     seed = view_seed(int(cfg.render.seed), view_id)
-    with torch.no_grad():
-        ctx = {
-            "id": view_id,
-            "seed": seed,
-            "layer": shared["layer"],
-            "oracle_layer": shared["oracle_layer"],
-            "fov": fov,
-            "gt": gt,
-            "pred": pred,
-            "im": im,
-            "scale": image_scale(im)[0],
-            "constants": shared["constants"],
-            "light": light,
-            "net": net,
-            "ctx_pred": net.encode(im, pred["depth"], fov),
-            "ctx_gt": net.encode(im, gt["depth"], fov),
-            "w2v": np.asarray(camera["world_from_view"]),
-            "oracle": (
-                MitsubaOracle(room, room.cameras[int(view)], shared["max_depth"], int(cfg.oracle.paths), seed)
-                if oracle
-                else None
-            ),
-        }
+    ctx = {
+        "id": view_id,
+        "seed": seed,
+        "view": prepared,
+        "layer": shared["layer"],
+        "oracle_layer": shared["oracle_layer"],
+        "constants": shared["constants"],
+        "light": light,
+        "w2v": np.asarray(camera["world_from_view"]),
+        "oracle": (
+            MitsubaOracle(room, room.cameras[int(view)], shared["max_depth"], int(cfg.oracle.paths), seed)
+            if oracle
+            else None
+        ),
+    }
     return ctx, cases
 
 
@@ -310,7 +290,7 @@ def run(cfg: DictConfig) -> dict[str, float]:
         for scene, view in tqdm(shared["views"], desc="edit", unit="view", disable=not cfg.progress):
             ctx, cases = view_context(shared, scene, view, cfg)
             view_id = ctx["id"]
-            photo_of[view_id] = (ctx["im"][0].permute(1, 2, 0), ctx["scale"], view_id)
+            photo_of[view_id] = (ctx["view"].photo, ctx["view"].scale, view_id)
             for res in score_view(ctx, cases, cfg):
                 case = res["case"]
                 res["view"] = view_id

@@ -1,5 +1,5 @@
 """Stage `evaluate`: the trained and the fine-tuned MaterialNet on IIW-test (WHDR), NYUv2-test (normal angle,
-depth si-RMSE) and the synthetic test split, with the paper's protocols (DESIGN.md section 6), through
+depth si-RMSE) and the synthetic test split, with the paper's protocols (docs/design.md, section 6), through
 `Trainer.test` (`systems.evaluation`). Data sources as in `finetune`; stand-in numbers are never labelled
 IIW or NYUv2.
 
@@ -78,7 +78,7 @@ def markdown_table(results: dict, sources: dict) -> str:
         )
     lines += [
         "",
-        "Protocols (DESIGN.md section 6): normals = per-image mean angle over the valid mask, then the mean over",
+        "Protocols (docs/design.md, section 6): normals = per-image mean angle over the valid mask, then the mean over",
         "images (prediction not renormalised after resizing); depth = per-image sqrt of the scale-invariant log",
         "error over 1-10 m, mean over images; WHDR on R^(1/2.2), delta 0.1, mean over images.",
         "",

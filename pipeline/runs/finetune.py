@@ -2,8 +2,9 @@
 with synthetic batches. Real data when `iiw_root` / `nyuv2_root` are set, otherwise format-faithful
 stand-ins built from the synthetic test views (`data.standins`); every report names its source.
 
-Writes under `out_dir`: model.pt (the MaterialNet export), checkpoints/last.ckpt, standins/; under
-`report_dir`: metrics.json and sources.json.
+Writes under `out_dir` (the DVC out): model.pt (the MaterialNet export) and standins/, the same bytes
+for the same seed; beside it, under `checkpoint_dir(out_dir)` (outputs/checkpoints/finetune): last.ckpt;
+under `report_dir`: metrics.json and sources.json.
 """
 
 from __future__ import annotations
@@ -24,7 +25,7 @@ from pipeline.data.standins import benchmark_roots
 from pipeline.models.export import save_material_export
 from pipeline.models.material_net import load_material_export
 from pipeline.systems.finetune import FinetuneSystem
-from pipeline.systems.trainer import stage_trainer
+from pipeline.systems.trainer import checkpoint_dir, stage_trainer
 from pipeline.tracking import publish, stage_run
 
 
@@ -73,9 +74,12 @@ def run(cfg: DictConfig) -> dict[str, float]:
     out, report = Path(cfg.out_dir), Path(cfg.report_dir)
     with stage_run("finetune", cfg, tags={"data_source": f"synthetic+{sources['iiw']}+{sources['nyuv2']}"}) as run:
         mlflow.log_params({"iiw_source": sources["iiw"], "nyuv2_source": sources["nyuv2"], "iiw_train": len(iiw_ids)})
-        trainer = stage_trainer(run, OmegaConf.to_container(cfg.trainer, resolve=True), out, (), bool(cfg.progress))
+        ckpt_dir = checkpoint_dir(out)
+        trainer = stage_trainer(
+            run, OmegaConf.to_container(cfg.trainer, resolve=True), ckpt_dir, (), bool(cfg.progress)
+        )
         trainer.fit(system, train_dataloaders=CombinedLoader(loaders, mode="max_size_cycle"))
-        trainer.save_checkpoint(out / "checkpoints" / "last.ckpt", weights_only=True)
+        trainer.save_checkpoint(ckpt_dir / "last.ckpt", weights_only=True)
         save_material_export(
             out / "model.pt",
             meta["model"],

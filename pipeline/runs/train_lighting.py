@@ -1,8 +1,10 @@
 """Stage `train_lighting`: LightNet trained with the HDR light loss and the MC re-rendering loss, scored
 on the test split beside content-blind baselines and oracles (`systems.lighting_baselines`).
 
-Writes under `out_dir`: checkpoints/best.ckpt and last.ckpt (Lightning), model.pt (the LightNet export
-with the weights `test_weights` names); under `report_dir`: metrics.json, rerender.png, envmaps.png.
+Writes under `out_dir` (the DVC out): model.pt (the LightNet export with the weights `test_weights`
+names), the same bytes for the same seed; beside it, under `checkpoint_dir(out_dir)`
+(outputs/checkpoints/train_lighting): best.ckpt and last.ckpt (Lightning; they name the MLflow run, for
+`resume=last`); under `report_dir`: metrics.json, test_views.csv (`view_rows`), rerender.png, envmaps.png.
 """
 
 from __future__ import annotations
@@ -20,8 +22,9 @@ from pipeline.models.material_net import load_material_export
 from pipeline.systems.lighting import LightingSystem
 from pipeline.systems.lighting_baselines import mean_training_radiance
 from pipeline.systems.lighting_figures import lighting_figures
-from pipeline.systems.trainer import epoch_checkpoints, resume_checkpoint, stage_trainer
+from pipeline.systems.trainer import checkpoint_dir, epoch_checkpoints, gather_rows, resume_checkpoint, stage_trainer
 from pipeline.tracking import publish, stage_run
+from pipeline.tracking.views_file import write_views
 
 TEST_WEIGHTS = ("last", "best")  # `test_weights`: the last epoch's, or the best validated re-render's
 
@@ -53,19 +56,53 @@ def build_system(cfg: DictConfig) -> LightingSystem:
 
 
 @torch.no_grad()
-def test_scores(system: LightingSystem, loader) -> dict[str, float]:
+def test_scores(system: LightingSystem, loader, views: list[dict] | None = None) -> dict[str, float]:
     """`evaluate_batch` over `loader`'s batches, each metric the mean weighted by batch size as Lightning
     reduces the test step's logs, outside Lightning (before training: the seeded initialisation, which
-    then stays out of the run's `test/` history). The system's train/eval mode is restored afterwards."""
+    then stays out of the run's `test/` history). views (a list): each view's own scores appended, one
+    dict per view with its id, as the test step collects them. The system's train/eval mode is restored
+    afterwards."""
     was_training = system.training
     system.eval()
     sums, weights = {}, {}
     for batch in loader:
         n = len(batch["im"])
-        for k, v in system.evaluate_batch(batch).items():
+        per = None if views is None else [{"id": view} for view in batch["id"]]
+        for k, v in system.evaluate_batch(batch, per).items():
             sums[k], weights[k] = sums.get(k, 0.0) + v * n, weights.get(k, 0) + n
+        if views is not None:
+            views.extend(per)
     system.train(was_training)
     return {k: sums[k] / weights[k] for k in sums}
+
+
+def view_rows(mode: str, tested: list[dict], untrained: list[dict] | None = None) -> list[dict]:
+    """test_views.csv's rows from the test step's per-view scores (`LightingSystem.test_views`): the
+    model's metrics as `<mode>/<metric>` (first, so the file names the model before the baselines; the
+    baselines' `model/render_psnr_at_probes` too), each baseline's as `<baseline>/<metric>`, and the
+    untrained network's (`untrained`, `test_scores`'s views) as `<mode>/untrained/<metric>`.
+
+    Each value is that view's own: the metric's function on the view's texels or pixels alone, with the
+    draws the batch's evaluation made (`systems.per_view`). metrics.json holds means over test batches
+    (weighted by batch size) of values pooled over each batch's views, so a column's mean equals the
+    stage's number when the test batches hold one view each (batch_size=1); otherwise relMSE and log-L1
+    are the texel- or pixel-count-weighted means of their batch's views, and PSNR and nMSE (a log and a
+    ratio of sums) are not means of the views' values."""
+    before = {r["id"]: r for r in untrained or []}
+    rows = []
+    for view in tested:
+        row = {"id": view["id"]}
+        row.update({f"{mode}/{k}": v for k, v in view.items() if k != "id" and "/" not in k})
+        row.update(
+            {
+                f"{mode}/{k.removeprefix('model/')}" if k.startswith("model/") else k: v
+                for k, v in view.items()
+                if "/" in k
+            }
+        )
+        row.update({f"{mode}/untrained/{k}": v for k, v in before.get(view["id"], {}).items() if k != "id"})
+        rows.append(row)
+    return rows
 
 
 def run(cfg: DictConfig) -> dict[str, float]:
@@ -84,16 +121,18 @@ def run(cfg: DictConfig) -> dict[str, float]:
     source = read_manifest(cfg.data_dir).get("source", "unspecified")
     mode = str(cfg.model.light_net.mode)
     tags = {"data_source": source, "mode": mode, "render": str(cfg.render.estimator)}
-    resume, resume_run_id = resume_checkpoint(cfg.resume, out / "checkpoints")
+    ckpt_dir = checkpoint_dir(out)
+    resume, resume_run_id = resume_checkpoint(cfg.resume, ckpt_dir)
     with stage_run("train_lighting", cfg, tags=tags, resume_run_id=resume_run_id) as run:
-        ckpt, last_ckpt = epoch_checkpoints(out / "checkpoints", "val/render_psnr", "max")
+        ckpt, last_ckpt = epoch_checkpoints(ckpt_dir, "val/render_psnr", "max")
         trainer = stage_trainer(
-            run, OmegaConf.to_container(cfg.trainer, resolve=True), out, [ckpt, last_ckpt], bool(cfg.progress)
+            run, OmegaConf.to_container(cfg.trainer, resolve=True), ckpt_dir, [ckpt, last_ckpt], bool(cfg.progress)
         )
         # the first validation pass (before any training step) records the starting re-render PSNR; a
         # resumed run repeats it on the same seeded initialisation, so it reports the same number
         start = trainer.validate(system, datamodule=dm, verbose=False)[0] if cfg.lighting.validate_before else None
-        untrained = test_scores(system, dm.test_dataloader()) if cfg.lighting.test_before else {}
+        untrained_views = []
+        untrained = test_scores(system, dm.test_dataloader(), untrained_views) if cfg.lighting.test_before else {}
         trainer.fit(system, datamodule=dm, ckpt_path=resume, weights_only=True)
         if system.validated_at_step == trainer.global_step:  # the last epoch was validated: same weights
             last = float(trainer.callback_metrics["val/render_psnr"])
@@ -115,6 +154,7 @@ def run(cfg: DictConfig) -> dict[str, float]:
         mlflow.set_tag("test_weights", chosen)
         system.baselines = constants
         trainer.test(system, datamodule=dm, verbose=False)
+        tested = gather_rows(system.test_views)  # every process's test views (each scored its share)
         if run is None:  # a distributed process other than rank 0: rank 0 reports, exports and tracks
             return {}
         logged = {
@@ -129,7 +169,8 @@ def run(cfg: DictConfig) -> dict[str, float]:
         metrics[f"{mode}/val/render_psnr_last_epoch"] = last
         metrics["global_step"] = float(trainer.global_step)
         save_light_export(out / "model.pt", system.hparams["light_net"], system.net)
-        publish(report, metrics)
+        views = write_views(report / "test_views.csv", view_rows(mode, tested, untrained_views))
+        publish(report, metrics, (views,))
         if int(cfg.lighting.figure_views) > 0:
             batch = next(iter(dm.plain_loader("test", batch_size=int(cfg.lighting.figure_views))))
             for figure in lighting_figures(system, batch, constants, report):

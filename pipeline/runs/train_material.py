@@ -1,7 +1,10 @@
 """Stage `train_material`: MaterialNet training -> test metrics, trivial baselines, gate, export.
 
-Writes under `out_dir`: checkpoints/best.ckpt and last.ckpt (Lightning), model.pt (the best weights with
-the network config, for `invrender predict`); under `report_dir`: metrics.json and test_maps.png.
+Writes under `out_dir` (the DVC out): model.pt (the best weights with the network config, for `invrender
+predict`), the same bytes for the same seed; beside it, under `checkpoint_dir(out_dir)`
+(outputs/checkpoints/train_material): best.ckpt and last.ckpt (Lightning; they name the MLflow run,
+for `resume=last`); under `report_dir`: metrics.json, test_views.csv (`test_view_scores`) and
+test_maps.png.
 """
 
 from __future__ import annotations
@@ -14,14 +17,15 @@ from omegaconf import DictConfig, OmegaConf
 
 from pipeline.data.datamodules import InteriorVerseDataModule
 from pipeline.data.datasets import read_manifest
-from pipeline.metrics.synthetic import depth_mask, ls_scale
+from pipeline.metrics.synthetic import depth_mask, ls_scale, material_metrics
 from pipeline.models.export import save_material_export
 from pipeline.models.material_net import parameter_count
 from pipeline.systems.material import METRICS, MaterialSystem
 from pipeline.systems.material_baselines import MaterialBaselines, accuracy_gate
-from pipeline.systems.trainer import epoch_checkpoints, resume_checkpoint, stage_trainer
+from pipeline.systems.trainer import checkpoint_dir, epoch_checkpoints, resume_checkpoint, stage_trainer
 from pipeline.tracking import publish, stage_run
 from pipeline.tracking.figures import map_comparison
+from pipeline.tracking.views_file import write_views
 
 
 @torch.no_grad()
@@ -38,6 +42,25 @@ def median_depth_scale(system: MaterialSystem, loader) -> float:
     if not scales:
         raise ValueError("validation split has no valid depth pixels; cannot calibrate the depth scale")
     return float(torch.tensor(scales).median())
+
+
+@torch.no_grad()
+def test_view_scores(system: MaterialSystem, loader, baselines: MaterialBaselines) -> list[dict]:
+    """One row per test view, in the loader's order: its id, the model's score on every test metric
+    (`model/<metric>`) and every trivial baseline's (`<baseline>/<metric>`), by the functions the test
+    pass scores with (`material_metrics`, `MaterialBaselines.metrics`). Both are per image, and the test
+    pass's `test/` and `test_baseline/` numbers are their means over images (NaN, a view without valid
+    pixels for a map, left out): the mean of a column over its finite values is the stage's number, up
+    to the float32 the test pass accumulates in."""
+    system.eval()
+    rows = []
+    for batch in loader:
+        pred = {k: v.cpu() for k, v in system.net(batch["im"].to(system.device)).items()}
+        per = {f"model/{k}": v for k, v in material_metrics(pred, batch).items()}
+        per.update(baselines.metrics(batch))
+        for i, view in enumerate(batch["id"]):
+            rows.append({"id": view, **{k: float(v[i]) for k, v in per.items()}})
+    return rows
 
 
 def build_system(cfg: DictConfig) -> MaterialSystem:
@@ -71,7 +94,7 @@ def run(cfg: DictConfig) -> dict[str, float]:
 
     L.seed_everything(int(cfg.seed), workers=True, verbose=False)
     out, report = Path(cfg.out_dir), Path(cfg.report_dir)
-    ckpt_dir = out / "checkpoints"
+    ckpt_dir = checkpoint_dir(out)
     resume, resume_run_id = resume_checkpoint(cfg.resume, ckpt_dir)
     source = read_manifest(cfg.data_dir).get("source", "unspecified")
     dm = build_datamodule(cfg)
@@ -87,7 +110,7 @@ def run(cfg: DictConfig) -> dict[str, float]:
             )
         ckpt, last_ckpt = epoch_checkpoints(ckpt_dir, "val/loss", "min")
         trainer = stage_trainer(
-            run, OmegaConf.to_container(cfg.trainer, resolve=True), out, [ckpt, last_ckpt], bool(cfg.progress)
+            run, OmegaConf.to_container(cfg.trainer, resolve=True), ckpt_dir, [ckpt, last_ckpt], bool(cfg.progress)
         )
         trainer.fit(system, datamodule=dm, ckpt_path=resume, weights_only=True)
         best = ckpt.best_model_path or last_ckpt.best_model_path
@@ -116,7 +139,8 @@ def run(cfg: DictConfig) -> dict[str, float]:
         size = (dm.splits["train"].height, dm.splits["train"].width)
         model_path = save_material_export(out / "model.pt", system.hparams["model"], system.net, size, depth_scale)
         metrics["depth_scale"] = depth_scale
-        publish(report, metrics)
+        views = write_views(report / "test_views.csv", test_view_scores(system, dm.test_dataloader(), baselines))
+        publish(report, metrics, (views,))
         figure = _test_figure(system, dm, report / "test_maps.png", int(cfg.figure_views))
         mlflow.log_artifact(str(figure), "figures")
         mlflow.set_tag("model_path", str(model_path.resolve()))

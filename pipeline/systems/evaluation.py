@@ -1,7 +1,7 @@
 """LightningModule that scores a MaterialNet export on the benchmark test sets through `Trainer.test`.
 
 Test dataloaders, in order (`BENCHMARKS`), each yielding one image per batch as the protocols of
-DESIGN.md section 6 score one image at a time:
+docs/design.md, section 6, score one image at a time:
   iiw        {"id", "photo" (H, W, 3) uint8 sRGB, "judgements"}: WHDR in % (gamma and linear conventions)
   nyuv2      {"index", "photo", "depth" (H, W) m, "normal" (H, W, 3), "valid" (H, W)}: normal angle, si-RMSE,
              median-scaled depth errors, and the angles for the pooled statistics

@@ -1,4 +1,4 @@
-"""Fine-tuning MaterialNet on real-image supervision (DESIGN.md section 5): albedo on IIW judgements with
+"""Fine-tuning MaterialNet on real-image supervision (docs/design.md, section 5): albedo on IIW judgements with
 Li et al. 2020's ranking loss, depth and normals on NYUv2, each batch mixed with a synthetic one."""
 
 from __future__ import annotations
@@ -9,7 +9,7 @@ import lightning as L
 import torch
 
 from pipeline.models.material_net import MaterialNet
-from pipeline.systems.losses import MaterialLoss, depth_loss, normal_loss, ranking_loss
+from pipeline.systems.material_losses import MaterialLoss, depth_loss, normal_loss, ranking_loss
 
 
 class FinetuneSystem(L.LightningModule):

@@ -2,7 +2,7 @@
 
 Per training step, for a batch of views: G-buffers (the frozen MaterialNet's predictions, its depth in
 metres through the exported depth scale, or the ground truth), random probes and texels of the lighting
-ground truth (`losses.LIGHT_LOSSES`, chosen by `lighting.light_loss`), and K random valid pixels
+ground truth (`light_losses.LIGHT_LOSSES`, chosen by `lighting.light_loss`), and K random valid pixels
 re-rendered through the render layer with LightNet as the incident-radiance callback (L2 against the
 input, in units of the image mean).
 Validation and test score every probe texel and a stride grid of pixels at the evaluation spp, with a
@@ -24,21 +24,11 @@ from pipeline.models.light_net import LightNet
 from pipeline.models.material_net import MaterialNet
 from pipeline.models.render_layer import MCRenderLayer
 from pipeline.ops.camera import grid_pixels, pixel_values
+from pipeline.systems.light_losses import LIGHT_LOSSES, light_nmse_loss
 from pipeline.systems.lighting_baselines import baseline_metrics
-from pipeline.systems.losses import LIGHT_LOSSES, light_nmse_loss
+from pipeline.systems.per_view import split_views
 
 QUERY_CHUNK = 8192  # LightNet queries per forward at evaluation (bounds memory)
-
-
-def render_layer(render: dict, spp_key: str = "spp") -> MCRenderLayer:
-    """The `conf/render/` group -> MCRenderLayer at render[spp_key] samples per pixel."""
-    return MCRenderLayer(
-        estimator=str(render["estimator"]),
-        spp=int(render[spp_key]),
-        adaptive=bool(render.get("adaptive", False)),
-        li_size=tuple(render.get("li_size", (8, 16))),
-        chunk=int(render.get("chunk", 1 << 16)),
-    )
 
 
 class LightingSystem(L.LightningModule):
@@ -78,8 +68,8 @@ class LightingSystem(L.LightningModule):
             self.material = MaterialNet(**material["model"]).eval().requires_grad_(False)
             self.material.load_state_dict(material["state_dict"])
             self.depth_scale = float(material["depth_scale"])
-        self.train_layer = render_layer(render, "spp")
-        self.eval_layer = render_layer(render, "eval_spp")
+        self.train_layer = MCRenderLayer.from_config(render, "spp")
+        self.eval_layer = MCRenderLayer.from_config(render, "eval_spp")
         self.eval_seed = int(render["seed"])
         self.pixels, self.probes, self.texels, self.free_probes = pixels, probes, texels, free_probes
         self.render_weight, self.eval_stride = float(render_weight), int(eval_stride)
@@ -94,6 +84,7 @@ class LightingSystem(L.LightningModule):
         self.generator = torch.Generator().manual_seed(int(seed))
         self.baselines = None  # lighting_baselines.Constants, set by the stage before testing
         self.eval_rows: list[dict] = []
+        self.test_views: list[dict] = []  # one row per test view: its id and its own scores (test_step)
         self.validated_at_step = -1
 
     # ------------------------------------------------------------------ pieces
@@ -202,9 +193,10 @@ class LightingSystem(L.LightningModule):
         return total
 
     @torch.no_grad()
-    def evaluate_batch(self, batch) -> dict[str, float]:
+    def evaluate_batch(self, batch, views: list[dict] | None = None) -> dict[str, float]:
         """Light errors at every probe texel (surface and free separately, and per ray class) and the
-        re-render PSNR / relMSE on the stride grid of valid pixels at eval_spp."""
+        re-render PSNR / relMSE on the stride grid of valid pixels at eval_spp. views (one dict per view of
+        the batch): also each view's own light errors and re-render scores (`per_view.split_views`)."""
         gen = self.eval_generator()
         fov = self.fov(batch)
         gb = self.gbuffers(batch)
@@ -218,6 +210,7 @@ class LightingSystem(L.LightningModule):
             q = self.query(ctx, gb, fov, rays, gen)
             pred, target, s = q["radiance"], rays.radiance, ctx["scale"][rays.image]
             out.update({f"{kind}_{k}": v for k, v in light_errors(pred, target, s).items()})
+            split_views(views, rays.image, light_errors, pred, target, s, prefix=f"{kind}_")
             for name, sel in ray_classes(q["hit"], q["u"]).items():
                 out[f"{kind}_rays_{name}"] = float(sel.float().mean())
                 if sel.any():  # a batch without such rays adds nothing to that class's mean
@@ -230,6 +223,14 @@ class LightingSystem(L.LightningModule):
         target = pixel_values(batch["im"], pix)
         out["render_psnr"] = float(psnr_tonemapped(rgb, target, ctx["scale"][b]))
         out["render_relmse"] = float(relmse(rgb, target, ctx["scale"][b]))
+        split_views(
+            views,
+            b,
+            lambda r, t, sc: {"render_psnr": psnr_tonemapped(r, t, sc), "render_relmse": relmse(r, t, sc)},
+            rgb,
+            target,
+            ctx["scale"][b],
+        )
         return out
 
     def validation_step(self, batch, batch_idx):
@@ -241,10 +242,12 @@ class LightingSystem(L.LightningModule):
             self.validated_at_step = self.global_step  # lets the stage reuse the final epoch's validation
 
     def test_step(self, batch, batch_idx):
-        row = self.evaluate_batch(batch)
+        views = [{"id": view} for view in batch["id"]]
+        row = self.evaluate_batch(batch, views)
         if self.baselines is not None:
-            row.update(baseline_metrics(batch, self.baselines, self))
+            row.update(baseline_metrics(batch, self.baselines, self, views))
         self.eval_rows.append(row)
+        self.test_views.extend(views)
         for k, v in row.items():
             self.log(f"test/{k}", v, batch_size=batch["im"].shape[0], sync_dist=True)
 

@@ -30,8 +30,10 @@ from pipeline.data.lighting import ViewLighting, probe_rays
 from pipeline.metrics.image import psnr_tonemapped
 from pipeline.metrics.lighting import light_errors
 from pipeline.models.light_net.branches import image_scale
+from pipeline.models.render_layer import PointRadianceFn
 from pipeline.ops.camera import grid_pixels, pixel_values
 from pipeline.ops.envmap import hemisphere_lookup
+from pipeline.systems.per_view import split_views
 
 PROFILE_BINS = 8  # elevation bands of the angular profile, equal in solid angle (uniform in the up component)
 
@@ -48,6 +50,28 @@ class Constants:
     def to(self, device) -> Constants:
         profile = {k: v.to(device) for k, v in self.profile.items()}
         return Constants(self.constant.to(device), self.ratio.to(device), profile)
+
+
+def constant_light(constants: Constants) -> PointRadianceFn:
+    """The `constant` baseline as an incident-radiance callback: the mean training radiance from every
+    direction at every point (reads only how many queries there are)."""
+
+    def radiance(idx, origin, wi, image):
+        return constants.constant.expand(len(image), 3)
+
+    return radiance
+
+
+def scaled_constant_light(constants: Constants, scale: torch.Tensor) -> PointRadianceFn:
+    """The `scaled_constant` baseline as an incident-radiance callback: the mean training radiance in
+    image means times the mean of the query's image, scale (B,) the views' image means (`image_scale`;
+    one view's 0-dim mean serves a single view)."""
+    per_image = scale.reshape(-1)
+
+    def radiance(idx, origin, wi, image):
+        return constants.ratio * per_image[image, None]
+
+    return radiance
 
 
 def elevation_band(directions: torch.Tensor) -> torch.Tensor:
@@ -126,37 +150,42 @@ def probe_oracle_light(
 
 
 @torch.no_grad()
-def baseline_metrics(batch: dict, constants: Constants, system) -> dict[str, float]:
+def baseline_metrics(batch: dict, constants: Constants, system, views: list[dict] | None = None) -> dict[str, float]:
     """Every baseline's light errors and re-render PSNR on one batch, keyed `<baseline>/<metric>`; the
-    renders use the system's evaluation layer and generator seed, so each draws the model's directions."""
+    renders use the system's evaluation layer and generator seed, so each draws the model's directions.
+    views (one dict per view of the batch): also each view's own values, the same keys
+    (`per_view.split_views`)."""
     fov = system.fov(batch)
     scale = image_scale(batch["im"])
     constants = constants.to(scale.device)  # the test step runs where Lightning put the batch
+    constant, scaled_constant = constant_light(constants), scaled_constant_light(constants, scale)
     out = {}
     for kind in ViewLighting.KINDS:
         rays = probe_rays(batch["light"], kind)
         if rays is None:
             continue
         s = scale[rays.image]
-        cases = {
-            "constant": (constants.constant.expand_as(rays.radiance), rays.radiance, s),
-            "scaled_constant": (constants.ratio * s[:, None], rays.radiance, s),
+        cases = {  # the constant lights ignore direction: one query per texel reads its value
+            "constant": (constant(None, rays.origin, None, rays.image), rays.radiance, s),
+            "scaled_constant": (scaled_constant(None, rays.origin, None, rays.image), rays.radiance, s),
             **probe_oracle_light(batch["light"], kind, scale, constants.profile.get(kind)),
         }
         for name, (pred, target, sc) in cases.items():
             out.update({f"{name}/{kind}_{k}": v for k, v in light_errors(pred, target, sc).items()})
+            split_views(views, rays.image, light_errors, pred, target, sc, prefix=f"{name}/{kind}_")
     B, _, H, W = batch["im"].shape
     layer = system.eval_layer
 
-    def psnr(gbuf, pixels, radiance) -> float:
+    def psnr(key, gbuf, pixels, radiance) -> None:
         rgb, b = layer.render_pixels(gbuf, fov, pixels, radiance, system.eval_generator())
-        return float(psnr_tonemapped(rgb, pixel_values(batch["im"], pixels), scale[b]))
+        target = pixel_values(batch["im"], pixels)
+        out[key] = float(psnr_tonemapped(rgb, target, scale[b]))
+        split_views(views, b, lambda r, t, sc: {key: psnr_tonemapped(r, t, sc)}, rgb, target, scale[b])
 
     pix = grid_pixels(batch["mask"][:, 0], system.eval_stride)
     model_gb = system.gbuffers(batch)  # what the model sees (predicted or ground truth, per config)
-    c, ratio = constants.constant, constants.ratio
-    out["constant/render_psnr"] = psnr(model_gb, pix, lambda idx, o, wi, b: c.expand(len(wi), 3))
-    out["scaled_constant/render_psnr"] = psnr(model_gb, pix, lambda idx, o, wi, b: ratio * scale[b, None])
+    psnr("constant/render_psnr", model_gb, pix, constant)
+    psnr("scaled_constant/render_psnr", model_gb, pix, scaled_constant)
     surf = [light.surf for light in batch["light"]]
     probe_pix = torch.cat([bi * H * W + p.pixel[:, 0] * W + p.pixel[:, 1] for bi, p in enumerate(surf)])
     normals = torch.cat([p.normal for p in surf])
@@ -165,11 +194,18 @@ def baseline_metrics(batch: dict, constants: Constants, system) -> dict[str, flo
     probe_pix, normals, rads = probe_pix[keep], normals[keep], rads[keep]
     gt = {k: batch[k] for k in ("albedo", "normal", "material")}
     gt["depth"] = torch.where(batch["mask"][:, 0], batch["depth"][:, 0], torch.zeros_like(batch["depth"][:, 0]))
-    out["gt_probes/render_psnr_at_probes"] = psnr(
-        gt, probe_pix, lambda idx, o, wi, b: hemisphere_lookup(rads, idx, normals[idx], wi)
+    psnr(
+        "gt_probes/render_psnr_at_probes",
+        gt,
+        probe_pix,
+        lambda idx, o, wi, b: hemisphere_lookup(rads, idx, normals[idx], wi),
     )
     ctx = system.net.encode(batch["im"], model_gb["depth"], fov)
     gen = system.eval_generator()
     rgb, b = layer.render_pixels(model_gb, fov, probe_pix, system.light_fn(ctx, model_gb, fov, gen), gen)
-    out["model/render_psnr_at_probes"] = float(psnr_tonemapped(rgb, pixel_values(batch["im"], probe_pix), scale[b]))
+    target = pixel_values(batch["im"], probe_pix)
+    out["model/render_psnr_at_probes"] = float(psnr_tonemapped(rgb, target, scale[b]))
+    split_views(
+        views, b, lambda r, t, sc: {"model/render_psnr_at_probes": psnr_tonemapped(r, t, sc)}, rgb, target, scale[b]
+    )
     return out

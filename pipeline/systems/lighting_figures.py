@@ -16,7 +16,7 @@ from pipeline.data.lighting import ProbeRays, probe_rays
 from pipeline.metrics.image import psnr_tonemapped
 from pipeline.ops.camera import grid_pixels, pixel_values
 from pipeline.systems.lighting import LightingSystem
-from pipeline.systems.lighting_baselines import Constants
+from pipeline.systems.lighting_baselines import Constants, scaled_constant_light
 from pipeline.tracking.figures import envmap_comparison, rerender_comparison
 
 
@@ -42,10 +42,7 @@ def rerender_views(system: LightingSystem, batch: dict, constants: Constants, st
     pix = grid_pixels(batch["mask"][:, 0], stride)
     layer, gen = system.eval_layer, system.eval_generator()
     model, b = layer.render_pixels(gb, fov, pix, system.light_fn(ctx, gb, fov, gen), gen)
-    ratio = constants.ratio
-    const, _ = layer.render_pixels(
-        gb, fov, pix, lambda idx, o, wi, bi: ratio * scale[bi, None], system.eval_generator()
-    )
+    const, _ = layer.render_pixels(gb, fov, pix, scaled_constant_light(constants, scale), system.eval_generator())
     target = pixel_values(batch["im"], pix)
     B, _, H, W = batch["im"].shape
     images = {k: scatter_grid(v, pix, (B, H, W), stride) for k, v in (("model", model), ("constant", const))}

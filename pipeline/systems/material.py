@@ -12,8 +12,8 @@ from torchmetrics import MeanMetric, MetricCollection
 
 from pipeline.metrics.synthetic import material_metrics
 from pipeline.models.material_net import MaterialNet
-from pipeline.systems.losses import MaterialLoss
 from pipeline.systems.material_baselines import MaterialBaselines
+from pipeline.systems.material_losses import MaterialLoss
 from pipeline.tracking.figures import map_comparison
 
 METRICS = ("albedo_mse", "normal_angle_deg", "roughness_mse", "metallic_mse", "depth_log_mse")

@@ -1,5 +1,6 @@
 """Lightning Trainer wiring shared by the training stages (systems is the only Lightning-aware layer):
-the Trainer itself, resuming from a checkpoint, and the MLflow run id carried inside checkpoints."""
+the Trainer itself, where checkpoints live, resuming from a checkpoint, and the MLflow run id carried
+inside checkpoints."""
 
 from __future__ import annotations
 
@@ -10,9 +11,20 @@ import torch
 RUN_ID_KEY = "MLflowRunId"  # the callback's state key inside checkpoint["callbacks"]
 
 
+def checkpoint_dir(out_dir: str | Path) -> Path:
+    """Where a stage writing `out_dir` keeps its Lightning checkpoints: `<parent>/checkpoints/<name>`
+    (outputs/train_material -> outputs/checkpoints/train_material; an ablation's
+    outputs/ablate/full-s0 -> outputs/ablate/checkpoints/full-s0), beside the stage's DVC out and never
+    inside it. A checkpoint holds the MLflow run id and absolute paths (the callbacks'
+    `best_model_path`, `dirpath`), so inside the out it would give the out a new hash on every run of
+    the same seed; the out keeps only what the same seed reproduces byte for byte (model.pt)."""
+    out = Path(out_dir)
+    return out.parent / "checkpoints" / out.name
+
+
 def resume_checkpoint(resume: str | None, ckpt_dir: str | Path) -> tuple[str | None, str | None]:
     """(checkpoint path, MLflow run id stored in it) for a stage's `resume` setting: None/''/'none' ->
-    (None, None); 'last' -> `<ckpt_dir>/last.ckpt`; anything else is a path. The file is loaded
+    (None, None); 'last' -> `<ckpt_dir>/last.ckpt` (`checkpoint_dir`); anything else is a path. The file is loaded
     weights-only first, so a checkpoint whose unpickling would run code is refused before Lightning
     sees it. Raises FileNotFoundError / ValueError naming the setting and the file."""
     if resume in (None, "", "none"):
@@ -68,9 +80,30 @@ def _run_id_callback(run_id: str):
     return MLflowRunId()
 
 
-def stage_trainer(run, trainer_kwargs: dict, out_dir, callbacks=(), progress: bool = True):
+def gather_rows(rows: list[dict]) -> list[dict]:
+    """Per-view rows a test step collected (dicts with an "id"), from every process of a distributed run
+    on every process, in the test split's order; one process: `rows` as they are. Lightning's distributed
+    sampler deals the split's views round-robin (process r gets views r, r + W, ...) and repeats the first
+    ones to even out the last batch; the repeats are dropped, the first row of each id kept."""
+    import torch.distributed as dist
+
+    if not (dist.is_available() and dist.is_initialized()) or dist.get_world_size() == 1:
+        return rows
+    parts: list = [None] * dist.get_world_size()
+    dist.all_gather_object(parts, rows)
+    dealt = [part[i] for i in range(max(map(len, parts))) for part in parts if i < len(part)]
+    seen, out = set(), []
+    for row in dealt:
+        if row["id"] not in seen:
+            seen.add(row["id"])
+            out.append(row)
+    return out
+
+
+def stage_trainer(run, trainer_kwargs: dict, root_dir, callbacks=(), progress: bool = True):
     """A Lightning Trainer logging to the stage's open MLflow run (`run`; None on ranks other than 0,
-    which log nothing), writing under `out_dir`; its checkpoints carry the run id."""
+    which log nothing), with `root_dir` as Lightning's default root (the stage's `checkpoint_dir`, so
+    nothing Lightning writes lands in the DVC out); its checkpoints carry the run id."""
     import lightning as L
     import mlflow
     from lightning.pytorch.loggers import MLFlowLogger
@@ -95,7 +128,7 @@ def stage_trainer(run, trainer_kwargs: dict, out_dir, callbacks=(), progress: bo
         **trainer_kwargs,
         logger=logger,
         callbacks=[*callbacks, *extra],
-        default_root_dir=str(out_dir),
+        default_root_dir=str(root_dir),
         enable_progress_bar=progress,
         enable_model_summary=False,
     )

@@ -4,26 +4,23 @@ from __future__ import annotations
 
 from pathlib import Path
 
-import matplotlib
+import numpy as np
+import torch
+from matplotlib.figure import Figure
+from matplotlib.patches import Rectangle
+from matplotlib.ticker import FuncFormatter
 
-matplotlib.use("Agg")
-import matplotlib.pyplot as plt  # noqa: E402
-import numpy as np  # noqa: E402
-import torch  # noqa: E402
-from matplotlib.ticker import FuncFormatter  # noqa: E402
-
-from pipeline.data.synth.figures import tonemap  # noqa: E402
+from pipeline.data.formats.photo import tonemap
 
 
-def save(fig, path: str | Path, title: str = "") -> Path:
-    """Title, tight layout, write the PNG (creating its folder), close the figure."""
+def save(fig: Figure, path: str | Path, title: str = "") -> Path:
+    """Title, tight layout, write the PNG (creating its folder)."""
     if title:
         fig.suptitle(title, fontsize=9)
     fig.tight_layout()
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     fig.savefig(path, dpi=90)
-    plt.close(fig)
     return path
 
 
@@ -63,7 +60,8 @@ def map_comparison(pred: dict, batch: dict, path: str | Path, title: str = "") -
     }
     for src, mat in (("gt", batch["material"]), ("pred", pred["material"])):
         maps[src]["roughness"], maps[src]["metallic"] = mat[:, :1], mat[:, 1:]
-    fig, axes = plt.subplots(2 * n, len(cols), figsize=(1.9 * len(cols), 1.5 * 2 * n), squeeze=False)
+    fig = Figure(figsize=(1.9 * len(cols), 1.5 * 2 * n))
+    axes = fig.subplots(2 * n, len(cols), squeeze=False)
     for v in range(n):
         dmax = float(gt_depth[v].max())
         for r, src in enumerate(("gt", "pred")):
@@ -90,7 +88,8 @@ def prediction_sheet(im: np.ndarray, maps: dict[str, np.ndarray], path: str | Pa
         ("metallic", maps["material"][..., 1]),
         ("depth (m)", maps["depth"] / 1000.0),
     ]
-    fig, axes = plt.subplots(1, len(panels), figsize=(2.2 * len(panels), 2.2))
+    fig = Figure(figsize=(2.2 * len(panels), 2.2))
+    axes = fig.subplots(1, len(panels))
     for ax, (name, img) in zip(axes, panels, strict=True):
         shown = ax.imshow(img, cmap=None if img.ndim == 3 else "viridis")
         if name == "depth (m)":
@@ -106,7 +105,8 @@ def ranked_cases(panels: list[dict], path: str | Path) -> Path:
     percentile). panels: {"label", "photo", "normal_gt", "normal_pred", "depth_gt", "depth_pred"}."""
     keys = ("photo", "normal_gt", "normal_pred", "depth_gt", "depth_pred")
     titles = ("input", "normal gt", "normal pred", "depth gt (m)", "depth pred (scaled)")
-    fig, axes = plt.subplots(len(panels), 5, figsize=(10, 2.0 * max(len(panels), 1)), squeeze=False)
+    fig = Figure(figsize=(10, 2.0 * max(len(panels), 1)))
+    axes = fig.subplots(len(panels), 5, squeeze=False)
     for row_axes, p in zip(axes, panels, strict=True):
         vmax = float(np.percentile(p["depth_gt"], 99))
         for c, (ax, key) in enumerate(zip(row_axes, keys, strict=True)):
@@ -133,7 +133,8 @@ def rerender_comparison(views: list[dict], path: str | Path, title: str = "") ->
     "constant": (H, W, 3) HDR arrays (NaN where nothing was rendered), "scale": image mean, "psnr":
     {"model": dB, "constant": dB}}. A row's panels share the input's exposure, so brightness compares."""
     cols = ("input", "LightNet re-render", "constant-light re-render", "|error| / image mean")
-    fig, axes = plt.subplots(len(views), len(cols), figsize=(2.4 * len(cols), 1.9 * len(views)), squeeze=False)
+    fig = Figure(figsize=(2.4 * len(cols), 1.9 * len(views)))
+    axes = fig.subplots(len(views), len(cols), squeeze=False)
     for row, v in zip(axes, views, strict=True):
         exposure = _input_exposure(v["input"])
         err = np.abs(v["model"] - v["input"]).mean(-1) / v["scale"]
@@ -157,7 +158,8 @@ def envmap_comparison(rows: list[dict], path: str | Path, title: str = "") -> Pa
     for a free point's sphere; columns: azimuth). rows: {"label", "input" (H, W, 3), "pixel": (row, col)
     or None, "gt", "pred": (R, C, 3) HDR}. A row shares the input's exposure."""
     cols = ("probe", "ground truth", "LightNet")
-    fig, axes = plt.subplots(len(rows), len(cols), figsize=(2.6 * len(cols), 1.5 * len(rows)), squeeze=False)
+    fig = Figure(figsize=(2.6 * len(cols), 1.5 * len(rows)))
+    axes = fig.subplots(len(rows), len(cols), squeeze=False)
     for row, r in zip(axes, rows, strict=True):
         exposure = _input_exposure(r["input"])
         row[0].imshow(tonemap(r["input"], exposure))
@@ -194,16 +196,15 @@ def insertion_grid(panels: list[dict], path: str | Path, title: str = "") -> Pat
     "psnr": {name: dB}, "pixels" (M,) flat, "scale": the photo's mean}. A row shares the photo's exposure."""
     names = list(panels[0]["rows"])
     cols = ["input", "ground truth", *names, "|LightNet - truth|"]
-    fig, axes = plt.subplots(len(panels), len(cols), figsize=(1.55 * len(cols), 1.6 * len(panels)), squeeze=False)
+    fig = Figure(figsize=(1.55 * len(cols), 1.6 * len(panels)))
+    axes = fig.subplots(len(panels), len(cols), squeeze=False)
     for row, p in zip(axes, panels, strict=True):
         H, W = p["photo"].shape[:2]
         exposure = _input_exposure(p["photo"])
         rs, cs = _crop_box(p["pixels"], H, W)
         row[0].imshow(tonemap(p["photo"], exposure))
         row[0].add_patch(
-            plt.Rectangle(
-                (cs.start - 0.5, rs.start - 0.5), cs.stop - cs.start, rs.stop - rs.start, fill=False, ec="cyan"
-            )
+            Rectangle((cs.start - 0.5, rs.start - 0.5), cs.stop - cs.start, rs.stop - rs.start, fill=False, ec="cyan")
         )
         images = [p["gt"], *(p["rows"][n] for n in names)]
         for ax, img in zip(row[1 : 2 + len(names)], images, strict=True):
@@ -235,7 +236,7 @@ def _label_points(ax, labelled: list[tuple[str, float, float]], fontsize: float 
     the nearest free text line (down, then up), and one past the axes' right edge goes left of its dot, so
     points close in speed and accuracy stay readable. Positions in display pixels; a thin line joins a
     moved label to its dot."""
-    ax.figure.canvas.draw()  # fix the limits and scales so data -> pixel transforms are final
+    ax.figure.draw_without_rendering()  # fix the limits and scales so data -> pixel transforms are final
     to_points = 72 / ax.figure.dpi
     line = fontsize / to_points * 1.25
     placed: list[tuple[float, float, float]] = []  # (x0, x1, y) pixel extents of placed labels
@@ -265,7 +266,8 @@ def pareto_figure(points: list[dict], path: str | Path, title: str = "") -> Path
     """Accuracy against cost, one labelled dot per point ({label, seconds, train_minutes, insertion_psnr,
     render_psnr}), the Pareto front as a line: columns insertion PSNR / re-render PSNR, rows against
     seconds per image / training minutes."""
-    fig, axes = plt.subplots(2, 2, figsize=(12, 9))
+    fig = Figure(figsize=(12, 9))
+    axes = fig.subplots(2, 2)
     labels = []
     for col, (acc, acc_label) in enumerate(
         (("insertion_psnr", "insertion PSNR, all objects (dB)"), ("render_psnr", "test re-render PSNR (dB)"))
@@ -306,7 +308,8 @@ def paired_scatter(
     group, with the diagonal: dots above it are cases the model wins. reference/model (N,) scores; groups
     N names; labels the two axes."""
     reference, model = np.asarray(reference, float), np.asarray(model, float)
-    fig, ax = plt.subplots(figsize=(5.2, 4.8))
+    fig = Figure(figsize=(5.2, 4.8))
+    ax = fig.subplots()
     for i, group in enumerate(sorted(set(groups))):
         sel = np.array([g == group for g in groups])
         won = float(np.mean(model[sel] > reference[sel]))

@@ -16,6 +16,8 @@ from pathlib import Path
 from omegaconf import DictConfig, OmegaConf
 
 EXPERIMENT = "invrender"
+# MLflow 3's UI opens an experiment by its kind; without this tag it may infer GenAI (traces, prompts)
+EXPERIMENT_KIND_TAG, EXPERIMENT_KIND = "mlflow.experimentKind", "custom_model_development"
 
 
 def project_root(start: str | Path | None = None) -> Path:
@@ -82,14 +84,19 @@ def _flatten(d: dict, prefix: str = "") -> dict[str, str]:
 
 def activate_experiment(cfg: DictConfig) -> None:
     """Point MLflow at the configured store and experiment (`tracking.uri`, `tracking.experiment`),
-    creating the experiment with its absolute artifact location on first use."""
+    creating the experiment with its absolute artifact location on first use. The experiment is typed
+    as model training (`mlflow.experimentKind`), also when it exists without that tag; a kind already
+    set on it is kept."""
     import mlflow
 
     uri, artifacts = tracking_uri(OmegaConf.select(cfg, "tracking.uri"))
     mlflow.set_tracking_uri(uri)
     name = OmegaConf.select(cfg, "tracking.experiment") or EXPERIMENT
-    if mlflow.get_experiment_by_name(name) is None:
-        mlflow.create_experiment(name, artifact_location=artifacts)
+    experiment = mlflow.get_experiment_by_name(name)
+    if experiment is None:
+        mlflow.create_experiment(name, artifact_location=artifacts, tags={EXPERIMENT_KIND_TAG: EXPERIMENT_KIND})
+    elif EXPERIMENT_KIND_TAG not in experiment.tags:
+        mlflow.MlflowClient().set_experiment_tag(experiment.experiment_id, EXPERIMENT_KIND_TAG, EXPERIMENT_KIND)
     mlflow.set_experiment(name)
 
 

@@ -133,7 +133,9 @@ def section_material(reports: Path) -> list[str]:
             base = key.split("/")[1]
             ci = "n/a"
             if views and f"model/{metric}" in views and f"{base}/{metric}" in views:
-                r = ratio_bootstrap(views[f"model/{metric}"], views[f"{base}/{metric}"], RESAMPLES, SEED)
+                a, b = views[f"model/{metric}"], views[f"{base}/{metric}"]
+                scored = np.isfinite(a) & np.isfinite(b)
+                r = ratio_bootstrap(a[scored], b[scored], RESAMPLES, SEED)
                 ci = interval(r["lo"], r["hi"])
             ratio = m.get(f"gate/{base}/{metric}")
             rows.append([metric, num(m.get(f"test/{metric}")), base, num(m[key]), num(ratio), ci])
@@ -191,10 +193,14 @@ def paired_rows(views: dict[str, np.ndarray], source: str) -> list[str]:
         who, metric = col.split("/", 1)
         if who == model or f"{model}/{metric}" not in views:
             continue
-        d = paired_bootstrap(views[f"{model}/{metric}"] - views[col], RESAMPLES, SEED)
-        rows.append([metric, f"{model} - {who}", signed(d["diff"]), interval(d["lo"], d["hi"])])
+        diff = views[f"{model}/{metric}"] - views[col]
+        scored = np.isfinite(diff)  # a view with nothing to score (e.g. no free probes) holds NaN
+        if not scored.any():
+            continue
+        d = paired_bootstrap(diff[scored], RESAMPLES, SEED)
+        rows.append([metric, f"{model} - {who}", f"{int(d['n'])}", signed(d["diff"]), interval(d["lo"], d["hi"])])
     head = [f"Paired per-view differences from `reports/{source}` (95 % bootstrap over views):", ""]
-    return head + md_table(["metric", "difference", "mean", "95 % interval"], rows)
+    return head + md_table(["metric", "difference", "views scored", "mean", "95 % interval"], rows)
 
 
 def section_edit(reports: Path) -> list[str]:
@@ -289,7 +295,9 @@ def flat_rows(rows: list) -> tuple[list[str], list[list[str]]]:
     keys = list(dict.fromkeys(k for r in rows for k, v in r.items() if not isinstance(v, dict | list)))
     return keys, [
         [
-            num(r[k]) if isinstance(r.get(k), int | float) and not isinstance(r.get(k), bool) else str(r.get(k, ""))
+            num(r[k])
+            if isinstance(r.get(k), int | float) and not isinstance(r.get(k), bool)
+            else ("n/a" if r.get(k) is None else str(r.get(k, "")))
             for k in keys
         ]
         for r in rows
@@ -304,7 +312,7 @@ def bench_block(name: str, data: dict) -> list[str]:
         f"### `{name}`",
         "",
         f"From `reports/bench/{name}.json` (device {machine.get('device', 'n/a')}, "
-        f"{machine.get('torch_threads', 'n/a')} threads, torch {machine.get('torch', 'n/a')}).",
+        f"torch threads {machine.get('torch_threads', 'n/a')}, torch {machine.get('torch', 'n/a')}).",
     ]
     head = data.get("measured", data.get("summary"))
     if head is None and name == "light_energy":

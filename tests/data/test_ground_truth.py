@@ -29,7 +29,7 @@ def _views(root):
 
 
 def _backproject(depth_mm: np.ndarray, cam: dict) -> np.ndarray:
-    """(H, W, 3) view-space points from z-depth (DESIGN.md section 3)."""
+    """(H, W, 3) view-space points from z-depth (docs/design.md, section 3)."""
     H, W = depth_mm.shape
     i, j = np.meshgrid(np.arange(H) + 0.5, np.arange(W) + 0.5, indexing="ij")
     z = depth_mm.astype(np.float64) / 1000.0

@@ -74,6 +74,18 @@ def test_srgb_curve_anchors_and_inverse():
     assert np.allclose(linear_to_srgb(srgb_to_linear(v)), v, atol=1e-12)
 
 
+def test_display_tonemap_exposes_the_median_and_stays_in_unit_range():
+    from pipeline.data.formats.photo import tonemap
+
+    hdr = np.array([[[0.5, 1.0, 2.0], [np.nan, np.inf, 0.0]]])
+    shown = tonemap(hdr)  # median positive value 1.0 -> 0.3, then x / (1 + x) and a 1/2.2 gamma
+    assert shown[0, 0, 1] == pytest.approx((0.3 / 1.3) ** (1 / 2.2), rel=1e-12)
+    assert shown[0, 1].tolist() == [0.0, 0.0, 0.0]  # NaN and +inf show as black
+    assert np.allclose(tonemap(hdr * 7.5), shown)  # the default exposure follows the image
+    assert tonemap(np.array([1.0]), exposure=1.0)[0] == pytest.approx(0.5 ** (1 / 2.2), rel=1e-12)
+    assert ((shown >= 0) & (shown <= 1)).all()
+
+
 def _nyu(tmp_path, n=5, H=4, W=6):
     rng = np.random.default_rng(0)
     images = rng.integers(0, 255, (n, H, W, 3), dtype=np.uint8)

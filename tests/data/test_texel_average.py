@@ -13,7 +13,7 @@ from scipy import stats
 from pipeline.data.synth import mitsuba_backend as mb
 from pipeline.data.synth.scene import generate_room
 from pipeline.data.synth.views import LightingConfig, gbuffer, lighting_probes, stratified_stderr
-from pipeline.ops.envmap import stratified_square, texel_directions, texel_solid_angles
+from pipeline.ops.envmap import square_centres, stratified_square, texel_directions, texel_solid_angles
 from pipeline.ops.frames import orthonormal_basis, to_local
 
 
@@ -58,7 +58,7 @@ def test_stratified_square_has_one_point_per_cell():
     for s in range(3):
         assert len({(int(i), int(j)) for i, j in cells[s]}) == 16
     torch.testing.assert_close(
-        stratified_square(2)[0],
+        square_centres(2),
         torch.tensor([[0.25, 0.25], [0.25, 0.75], [0.75, 0.25], [0.75, 0.75]], dtype=torch.float64),
     )
 

@@ -2,6 +2,7 @@
 
 import math
 
+import numpy as np
 import pytest
 import torch
 
@@ -54,7 +55,7 @@ def test_log_l1_and_psnr_are_exposure_invariant():
 
 
 def test_relative_mse_loss_is_exposure_invariant_and_stationary_at_the_mean():
-    from pipeline.systems.losses import hdr_relative_loss as relative_mse
+    from pipeline.systems.light_losses import hdr_relative_loss as relative_mse
 
     g = torch.Generator().manual_seed(0)
     target = torch.rand(64, 3, generator=g, dtype=torch.float64) ** 4 * 10
@@ -83,29 +84,47 @@ def _assert_fixed_point(loss_fn, centre: torch.Tensor, target: torch.Tensor, sca
 
 
 def test_log_l1_loss_is_the_metric_and_stationary_at_the_median():
-    from pipeline.systems.losses import hdr_log_l1_loss
+    from pipeline.systems.light_losses import hdr_log_l1_loss
 
     g = torch.Generator().manual_seed(1)
     target = torch.rand(63, 3, generator=g, dtype=torch.float64) ** 4 * 10  # odd count: a unique median
     pred = torch.rand(63, 3, generator=g, dtype=torch.float64)
     scale = torch.full((63,), 0.3, dtype=torch.float64)
     a = hdr_log_l1_loss(pred, target, scale)
-    assert torch.allclose(a, log_l1(pred, target, scale))
+    # by hand: two images (means 1 and 0.5), a negative prediction counting as 0; in image-mean units
+    # |log(1 + p) - log(1 + t)| is log 2, log 2, log 4.5 for image 1 and log 3, log 7/3, log 3 for image 2
+    small = hdr_log_l1_loss(
+        torch.tensor([[3.0, 0.0, 8.0], [1.0, 1.0, -1.0]], dtype=torch.float64),
+        torch.tensor([[1.0, 1.0, 1.0], [0.0, 3.0, 1.0]], dtype=torch.float64),
+        torch.tensor([1.0, 0.5], dtype=torch.float64),
+    )
+    expect = (2 * math.log(2) + math.log(4.5) + 2 * math.log(3) + math.log(7 / 3)) / 6
+    assert math.isclose(float(small), expect, rel_tol=1e-12)
+    p, t, s = (x.numpy() for x in (pred, target, scale[:, None]))
+    assert math.isclose(float(a), float(np.abs(np.log1p(p / s) - np.log1p(t / s)).mean()), rel_tol=1e-12)
     assert torch.allclose(hdr_log_l1_loss(pred * 7, target * 7, scale * 7), a)
     # one shared prediction per channel: zero subgradient at the median, a net pull towards it elsewhere
     _assert_fixed_point(hdr_log_l1_loss, target.median(0).values, target, scale)
 
 
 def test_nmse_loss_is_the_metric_per_image_exposure_and_stationary_at_the_mean():
-    from pipeline.systems.losses import light_nmse_loss
+    from pipeline.systems.light_losses import light_nmse_loss
 
     g = torch.Generator().manual_seed(2)
     target = torch.rand(64, 3, generator=g, dtype=torch.float64) ** 4 * 10
     pred = torch.rand(64, 3, generator=g, dtype=torch.float64)
     scale = torch.where(torch.arange(64) < 32, 0.3, 2.0).to(torch.float64)  # two images, two exposures
     a = light_nmse_loss(pred, target, scale)
-    s = scale[:, None]
-    assert torch.allclose(a, normalised_mse(pred / s, target / s))
+    # by hand: images of means 1 and 2; in those units the targets are (1, 0, 0) and (0, 2, 0), the
+    # predictions (0, 0, 0) and (0, 1, 1): error energy 1 + 1 + 1 over light energy 1 + 4 (absolute: 9 / 17)
+    small = light_nmse_loss(
+        torch.tensor([[0.0, 0.0, 0.0], [0.0, 2.0, 2.0]], dtype=torch.float64),
+        torch.tensor([[1.0, 0.0, 0.0], [0.0, 4.0, 0.0]], dtype=torch.float64),
+        torch.tensor([1.0, 2.0], dtype=torch.float64),
+    )
+    assert math.isclose(float(small), 3 / 5, rel_tol=1e-12)
+    p, t, s = (x.numpy() for x in (pred, target, scale[:, None]))
+    assert math.isclose(float(a), float(((p / s - t / s) ** 2).sum() / ((t / s) ** 2).sum()), rel_tol=1e-12)
     # in units of each image's mean: a brighter exposure of one image leaves the loss as it is
     brighter = torch.where(torch.arange(64)[:, None] < 32, 5.0, 1.0).to(torch.float64)
     assert torch.allclose(light_nmse_loss(pred * brighter, target * brighter, scale * brighter[:, 0]), a)

@@ -99,10 +99,17 @@ def test_ray_box_and_scene_bounds():
     assert t0.item() == 0.0 and t1.item() == pytest.approx(1.0)
     t0, t1 = ray_box(torch.tensor([[5.0, 5.0, 5.0]]), torch.tensor([[1.0, 0.0, 0.0]]), lo, hi)
     assert t1.item() == t0.item()  # a miss is an empty interval
-    depth = torch.full((1, 4, 4), 3.0)
-    depth[0, 0, 0] = float("inf")
+    # 2 x 4 view, fov_x 90: f = (W/2) / tan(45) = 2, p = z ((j + .5 - 2) / 2, -(i + .5 - 1) / 2, -1) (docs/data.md).
+    # Depth 3 except an inf and a 0 (no surface: left out) and a far pixel (row 1, col 3) at 6.
+    depth = torch.full((1, 2, 4), 3.0)
+    depth[0, 0, 0], depth[0, 0, 1], depth[0, 1, 3] = float("inf"), 0.0, 6.0
+    # valid points: x from -2.25 (row 1, col 0) to 4.5 (the far pixel), y from -1.5 (the far pixel) to 0.75
+    # (row 0), z from -6 to the camera's 0; the box grows by 0.1 of its size + 0.01 on each side
+    lo, hi = torch.tensor([-2.25, -1.5, -6.0]), torch.tensor([4.5, 0.75, 0.0])
+    pad = 0.1 * (hi - lo) + 0.01
     b = scene_bounds(depth, 90.0)
-    assert (b[0, 0] < 0).all() == bool((b[0, 0, :2] < 0).all()) and b[0, 0, 2] < -3.0 and b[0, 1, 2] > 0
+    assert b.shape == (1, 2, 3)
+    torch.testing.assert_close(b[0], torch.stack([lo - pad, hi + pad]))
 
 
 def _scene(B=2, H=24, W=32, fov=85.0):

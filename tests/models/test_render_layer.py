@@ -53,10 +53,19 @@ def test_adaptive_gives_glossy_pixels_more_samples():
     metal[:] = 0.0
     rough[0, 0, 2, 2], metal[0, 0, 2, 2] = 0.05, 1.0
     out = MCRenderLayer("importance", spp=8, adaptive=True)(
-        normal, albedo, rough, metal, mask, 60.0, lambda k, wi: torch.ones(len(k), 3)
+        normal, albedo, rough, metal, mask, 60.0, lambda k, wi: torch.ones(len(k), 3), torch.Generator().manual_seed(0)
     )
     counts = out["counts"][0, 0]
     assert counts[2, 2] == counts[1:].max() and counts[2, 2] > counts[1, 1]
+
+
+def test_from_config_reads_the_render_group_at_the_chosen_spp():
+    render = {"estimator": "uniform", "spp": 4, "eval_spp": 32, "adaptive": True, "li_size": [4, 8], "chunk": 99}
+    train, ev = MCRenderLayer.from_config(render), MCRenderLayer.from_config(render, "eval_spp")
+    assert (train.spp, ev.spp) == (4, 32)
+    assert (ev.estimator, ev.adaptive, ev.li_size, ev.chunk) == ("uniform", True, (4, 8), 99)
+    defaults = MCRenderLayer.from_config({"estimator": "importance", "spp": 2})
+    assert (defaults.adaptive, defaults.li_size, defaults.chunk) == (False, (8, 16), 1 << 16)
 
 
 def test_bad_configuration_names_the_key():
@@ -129,7 +138,9 @@ def test_render_pixels_agrees_with_the_image_layer_and_reports_images():
     gb = _pixel_gbuffer(torch.float32)
     layer = MCRenderLayer("li2020", li_size=(4, 8))
     pixels = torch.arange(24)
-    rgb, image = layer.render_pixels(gb, 70.0, pixels, lambda k, o, wi, b: torch.ones(len(wi), 3), None)
+    rgb, image = layer.render_pixels(
+        gb, 70.0, pixels, lambda k, o, wi, b: torch.ones(len(wi), 3), torch.Generator().manual_seed(0)
+    )
     assert image.tolist() == [0] * 12 + [1] * 12
     full = layer(
         gb["normal"],
@@ -139,5 +150,6 @@ def test_render_pixels_agrees_with_the_image_layer_and_reports_images():
         torch.ones(2, 1, 3, 4),
         70.0,
         lambda k, wi: torch.ones(len(wi), 3),
+        torch.Generator().manual_seed(1),
     )["rgb"]
     torch.testing.assert_close(rgb, full.permute(0, 2, 3, 1).reshape(-1, 3), rtol=1e-5, atol=1e-6)

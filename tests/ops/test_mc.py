@@ -107,6 +107,19 @@ def test_chunking_does_not_change_the_result_and_zero_counts_give_zero():
     assert (d1[3] == 0).all() and (s1[3] == 0).all()
 
 
+def test_the_generator_is_explicit_and_alone_decides_the_samples():
+    """Randomness is an argument: no fallback to the global RNG, whose state does not move the result."""
+    n, wo, a, r, mt = _points(20, 0.3, 30.0, 0.0)
+    fn = lambda k, wi: _sky(wi)  # noqa: E731
+    with pytest.raises(TypeError, match="generator=None"):
+        mc.estimate(fn, n, wo, a, r, mt, 4, None)
+    torch.manual_seed(1)
+    d1, _ = mc.estimate(fn, n, wo, a, r, mt, 4, torch.Generator().manual_seed(2))
+    torch.manual_seed(99)
+    d2, _ = mc.estimate(fn, n, wo, a, r, mt, 4, torch.Generator().manual_seed(2))
+    assert torch.equal(d1, d2)
+
+
 def test_gradients_match_common_random_number_differences():
     """With uniform sampling the directions do not depend on albedo/roughness/metallic, so the estimator
     is a smooth function of them under common random numbers: autograd == central differences."""

@@ -5,6 +5,7 @@ metrics; the `report` stage's verdicts follow the seed spread; pareto fronts are
 from __future__ import annotations
 
 import json
+import math
 import os
 from pathlib import Path
 
@@ -26,21 +27,48 @@ def test_dvc_runs_every_preset_and_only_existing_ones():
     assert {"full", "no_mc", "no_rerender_loss", "out_of_view_only", "ssrt_only", "gt_gbuffers"} <= listed
 
 
+def _vgg16_weights(path: Path, layers) -> Path:
+    """A torchvision VGG16 state dict with seeded random weights at `path` (tests download no ImageNet
+    weights): He-initialised convolutions up to the deepest of `layers`, the ones the perceptual loss
+    reads, and the unused rest a single zero broadcast to its shape, so the file holds 7 MB, not 528."""
+    from torchvision.models import vgg16
+
+    from pipeline.systems.material_losses import VGG_LAYERS
+
+    with torch.device("meta"):  # shapes only, nothing allocated
+        shapes = {k: v.shape for k, v in vgg16(weights=None).state_dict().items()}
+    deepest = max(VGG_LAYERS[name] for name in layers)
+    g = torch.Generator().manual_seed(0)
+    state = {}
+    for key, shape in shapes.items():
+        read = key.startswith("features.") and int(key.split(".")[1]) <= deepest
+        if read and key.endswith(".weight"):
+            state[key] = torch.randn(shape, generator=g) * math.sqrt(2 / math.prod(shape[1:]))
+        else:
+            state[key] = torch.zeros(()).expand(shape)
+    torch.save(state, path)
+    return path
+
+
 @pytest.mark.slow
 @pytest.mark.parametrize("preset", PRESETS)
-def test_every_preset_composes_and_takes_a_training_step(micro_shards, micro_exports, preset):
+def test_every_preset_composes_and_takes_a_training_step(micro_shards, micro_exports, preset, tmp_path, monkeypatch):
     from pipeline.runs import ablate, train_lighting, train_material
     from pipeline.runs.train_material import build_datamodule
 
     base = ["profile=micro", f"ablation={preset}", f"data_dir={micro_shards}"]
     stage = ablate.preset_stage(preset)
-    cfg = compose_cfg(
-        stage, [*base, f"material_path={micro_exports / 'material.pt'}"] if stage == "train_lighting" else base
-    )
+    overrides = [*base, f"material_path={micro_exports / 'material.pt'}"] if stage == "train_lighting" else base
+    vgg_weights = None
+    if preset == "material_perceptual":  # without VGG16 weights: reported unavailable, never faked
+        monkeypatch.delenv("INVRENDER_VGG16_WEIGHTS", raising=False)
+        cfg = compose_cfg(stage, overrides)
+        assert "loss.perceptual_weights" in (ablate.unavailable(cfg) or "")
+        vgg_weights = _vgg16_weights(tmp_path / "vgg16.pth", cfg.loss.perceptual_layers)
+        monkeypatch.setenv("INVRENDER_VGG16_WEIGHTS", str(vgg_weights))
+    cfg = compose_cfg(stage, overrides)
     assert cfg.preset.name == preset and cfg.preset.reference in PRESETS
-    if ablate.unavailable(cfg) is not None:  # e.g. no VGG16 weights here: reported, never faked
-        assert preset == "material_perceptual" and "perceptual_weights" in ablate.unavailable(cfg)
-        return
+    assert ablate.unavailable(cfg) is None
     if stage == "train_lighting":
         from pipeline.data.datamodules import InteriorVerseDataModule
 
@@ -57,6 +85,13 @@ def test_every_preset_composes_and_takes_a_training_step(micro_shards, micro_exp
     loss.backward()
     opt.step()
     assert torch.isfinite(loss)
+    if vgg_weights is not None:  # the perceptual term is on, with the file's weights, and scores the maps
+        vgg = system.loss.vgg
+        assert system.loss.perceptual_on and system.loss.perceptual_weight > 0
+        assert torch.equal(vgg.features[0].weight, torch.load(vgg_weights, weights_only=True)["features.0.weight"])
+        with torch.no_grad():
+            _, terms = system.loss(system.net(batch["im"]), batch)
+        assert torch.isfinite(terms["perceptual"]) and terms["perceptual"] > 0
 
 
 def _lighting_step(system, batch):

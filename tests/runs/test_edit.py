@@ -243,6 +243,33 @@ def test_cli_material_choices_are_the_scored_classes():
         assert OBJECT_MATERIALS[name][1:] == (rough, metal)
 
 
+def test_prepared_view_holds_the_photo_both_gbuffers_and_their_contexts(micro_root, exports):
+    """What the stage, `invrender insert/edit` and the insertion bench render from (`prepare_view`): the
+    photo as read, G-buffers with depth zeroed outside the mask, a context per G-buffer set."""
+    from pipeline.data import cases as case_io
+    from pipeline.models.insertion import prepare_view
+    from pipeline.models.light_net import load_light_export
+    from pipeline.models.material_net import load_material_export
+
+    scene, view = case_io.case_views(micro_root, "test")[0]
+    maps, cases, camera = case_io.read_case_view(micro_root, scene, view, "test")
+    material = load_material_export(exports / "material.pt")
+    net, _ = load_light_export(exports / "light.pt")
+    mask = maps["mask"][..., 0] > 0.5
+    fov = float(camera["fov_x_deg"])
+    v = prepare_view(maps["im"], *material, net, fov, mask=mask, gt_maps=maps)
+    H, W = maps["im"].shape[:2]
+    assert cases and v.fov == fov and v.image.shape == (1, 3, H, W)
+    assert torch.equal(v.photo, torch.from_numpy(maps["im"]).float())
+    for gb in (v.pred, v.gt):
+        assert gb["depth"].shape == (1, H, W) and (gb["depth"][0][~torch.from_numpy(mask)] == 0).all()
+    assert v.ctx_pred is not None and v.ctx_gt is not None
+    assert float(v.scale) == pytest.approx(float(np.clip(maps["im"], 0, None).mean()), rel=1e-4)
+    bare = prepare_view(maps["im"], *material, net, fov)  # a photo of one's own: no mask, no ground truth
+    assert bare.gt is None and bare.ctx_gt is None
+    assert torch.equal(bare.pred["albedo"], v.pred["albedo"])
+
+
 def test_rows_on_the_same_shading_draw_the_same_directions(micro_root, micro_shards, exports):
     """Pairing, checked where it is exact: under a constant light an estimate is (mean of f cos / pdf over
     the drawn directions) x L, so the scaled constant's render of an object is the constant's times
@@ -266,7 +293,7 @@ def test_rows_on_the_same_shading_draw_the_same_directions(micro_root, micro_sha
             continue
         res = score_view(ctx, objects, cfg)[0]
         c = shared["constants"]
-        want = res["renders"]["constant"] * (c.ratio * ctx["scale"] / c.constant)
+        want = res["renders"]["constant"] * (c.ratio * ctx["view"].scale / c.constant)
         assert torch.allclose(res["renders"]["scaled_constant"], want, rtol=1e-5, atol=1e-7)
     test_views = [(s, v) for s in iv.read_split(micro_root, "test") for v in iv.list_views(micro_root, s)]
     assert len(seeds) == len(shared["views"]) == len(test_views)

@@ -1,6 +1,8 @@
 """Stages `finetune` and `evaluate` end to end on the micro profile with stand-ins."""
 
+import csv
 import json
+import statistics
 
 import mlflow
 import numpy as np
@@ -51,9 +53,20 @@ def test_evaluate_reports_both_models_with_their_sources(evaluated):
         assert (report / f"{model}_nyuv2_cases.png").stat().st_size > 5_000
     table = (report / "table.md").read_text()
     assert "standin-nyuv2" in table and "not comparable" in table and "published" in table
-    assert "| ours: trained |" in table and "21.86" in table
+    for model in ("trained", "finetuned"):  # each row: the means of the per-image scores the stage wrote
+        nyu, iiw = (_csv_means(report / f"{model}_{bench}.csv") for bench in ("nyuv2", "iiw"))
+        row = f"| ours: {model} | {nyu['normal_deg']:.2f}° | {nyu['depth_si']:.3f} | {iiw['whdr_gamma']:.1f} |"
+        assert row in table, (row, table)
+    assert "| Zhu et al. 2022 (paper) | 21.86° | 0.155 | 15.5 | published (NYUv2 / IIW) |" in table
     runs = mlflow.search_runs(experiment_names=["invrender"], filter_string="tags.stage = 'evaluate'")
     assert (runs["tags.data_source"] == "standin-iiw+standin-nyuv2+synthetic").any()
+
+
+def _csv_means(path) -> dict[str, float]:
+    """Mean of every score column of a per-image CSV (all finite here: the caller checks `nonfinite`)."""
+    with open(path, newline="") as f:
+        rows = list(csv.DictReader(f))
+    return {k: statistics.fmean(float(r[k]) for r in rows) for k in rows[0] if k not in ("id", "index")}
 
 
 def test_whdr_command_line(evaluated, capsys):
@@ -94,3 +107,29 @@ def test_evaluate_refuses_standins_built_with_other_settings(evaluated, micro_sh
     with pytest.raises(ValueError, match="points differ"):
         evaluate.run(compose_cfg("evaluate", [*common, f"data_dir={micro_shards}", "standin.points=41"]))
     assert done.read_text() == before
+
+
+def test_finetune_out_is_byte_identical_on_a_rerun(evaluated, micro_shards, tmp_path):
+    """finetune again from the same trained model and seed, in other folders and another MLflow run: every
+    file of its DVC out (model.pt, the stand-ins) has the same bytes, so `dvc.lock` does not change; its
+    checkpoint lies beside the out."""
+    import hashlib
+
+    from stages import finetune
+
+    tmp = evaluated[0]
+    common = ["profile=micro", f"paths.outputs={tmp_path}/outputs", f"paths.reports={tmp_path}/reports"]
+    model = f"model_path={tmp}/outputs/train_material/model.pt"
+    overrides = [f"data_dir={micro_shards}", "progress=false", "trainer.max_epochs=1", "finetune.batch_size=2", model]
+    finetune.run(compose_cfg("finetune", [*common, *overrides]))
+
+    def digest(root):
+        return {
+            str(p.relative_to(root)): hashlib.sha256(p.read_bytes()).hexdigest() for p in root.rglob("*") if p.is_file()
+        }
+
+    first, again = digest(tmp / "outputs" / "finetune"), digest(tmp_path / "outputs" / "finetune")
+    # every file the re-run wrote is the first run's (whose folder other tests here add files to)
+    assert again == {k: first.get(k) for k in again}
+    assert {"model.pt", "standins/done.json", "standins/nyuv2/splits.mat"} <= set(again)
+    assert (tmp_path / "outputs" / "checkpoints" / "finetune" / "last.ckpt").is_file()

@@ -1,10 +1,14 @@
 """Kill and resume: `train_material` and `train_lighting` killed with SIGKILL in the middle of an epoch
-resume from last.ckpt with `resume=last`, finish with exactly the metrics of an uninterrupted run of the
-same seed, and continue the killed run's MLflow run rather than opening a second one."""
+resume from last.ckpt with `resume=last`, finish with exactly the metrics (and DVC out and per-view
+scores) of an uninterrupted run of the same seed, and continue the killed run's MLflow run rather than
+opening a second one."""
 
+import csv
+import hashlib
 import json
 import os
 import signal
+import statistics
 import subprocess
 import sys
 import uuid
@@ -114,6 +118,13 @@ def test_killed_stage_resumes_to_the_uninterrupted_result(killed, micro_shards, 
     # checkpoint (weights, optimiser, shuffling and augmentation generators, the light sampler): bitwise
     assert resumed == reference
     assert resumed["global_step"] == reference["global_step"] > 0
+    # the DVC out: the same bytes (the checkpoints beside it name their runs and differ)
+    assert _sha(tmp / "outputs" / stage / "model.pt") == _sha(tmp_path / "outputs" / stage / "model.pt")
+    views = f"reports/{stage}/test_views.csv"
+    assert (tmp / views).read_bytes() == (tmp_path / views).read_bytes()
+    # test batches of one view: the stage's pooled-per-batch numbers are the means of the per-view ones
+    for column, values in _views(tmp / views).items():
+        assert statistics.fmean(values) == pytest.approx(resumed[_metric_key(stage, column)], rel=1e-5), column
 
     runs = mlflow.search_runs(experiment_names=[experiment], output_format="list")
     assert [r.info.run_id for r in runs] == [killed_run.info.run_id]  # continued, not a second half-run
@@ -128,11 +139,35 @@ def test_killed_stage_resumes_to_the_uninterrupted_result(killed, micro_shards, 
     assert max(steps) >= reference["global_step"] - 1  # the history runs to the end of training
 
 
+def _sha(path) -> str:
+    return hashlib.sha256(path.read_bytes()).hexdigest()
+
+
+def _views(path) -> dict[str, list[float]]:
+    """The score columns of a test_views.csv."""
+    with path.open(newline="") as f:
+        rows = list(csv.DictReader(f))
+    return {k: [float(r[k]) for r in rows] for k in rows[0] if k != "id"}
+
+
+def _metric_key(stage: str, column: str) -> str:
+    """metrics.json's key for a test_views.csv column: `model/<m>` (train_material) and `<mode>/<m>`
+    (train_lighting; `<mode>/untrained/<m>` before training) are the model's, the rest baselines'."""
+    who, metric = column.split("/", 1)
+    if stage == "train_material":
+        return f"test/{metric}" if who == "model" else f"baseline/{column}"
+    if who == "mixed":
+        if metric.startswith("untrained/"):
+            return f"mixed/untrained/test/{metric.removeprefix('untrained/')}"
+        return "baseline/model/render_psnr_at_probes" if metric == "render_psnr_at_probes" else f"mixed/test/{metric}"
+    return f"baseline/{column}"
+
+
 def test_resume_refuses_a_truncated_or_foreign_checkpoint(killed, tmp_path):
     from pipeline.systems.trainer import resume_checkpoint
 
     tmp, *_ = killed("train_material")
-    last = tmp / "outputs" / "train_material" / "checkpoints" / "last.ckpt"
+    last = tmp / "outputs" / "checkpoints" / "train_material" / "last.ckpt"
     cut = tmp_path / "cut.ckpt"
     cut.write_bytes(last.read_bytes()[: last.stat().st_size // 2])
     with pytest.raises(ValueError, match="cut.ckpt is not a weights-only checkpoint"):

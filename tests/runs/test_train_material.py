@@ -1,6 +1,9 @@
-"""Stage `train_material` on the micro profile: every backbone trains a step, the stage is deterministic,
-resumes, reports baselines and a gate, and `invrender predict` round-trips a view."""
+"""Stage `train_material` on the micro profile: every backbone trains a step, the stage is deterministic
+(its DVC out byte for byte), resumes, reports baselines, a gate and per-view scores, and `invrender
+predict` round-trips a view."""
 
+import csv
+import hashlib
 import json
 import pickle
 import shutil
@@ -77,9 +80,8 @@ def test_stage_writes_reports_checkpoints_and_tracks(trained):
         assert np.isfinite(metrics[key])
     gates = [v for k, v in metrics.items() if k.startswith("gate/") and k != "gate/passed"]
     assert metrics["gate/passed"] == float(all(g <= 0.8 for g in gates)) and metrics["global_step"] == 1
-    assert (tmp / "outputs" / "train_material" / "checkpoints" / "best.ckpt").is_file() and (
-        tmp / "outputs" / "train_material" / "checkpoints" / "last.ckpt"
-    ).is_file()
+    ckpts = tmp / "outputs" / "checkpoints" / "train_material"  # beside the DVC out, not in it
+    assert (ckpts / "best.ckpt").is_file() and (ckpts / "last.ckpt").is_file()
     assert (tmp / "reports" / "train_material" / "test_maps.png").stat().st_size > 5_000
     runs = mlflow.search_runs(
         experiment_names=["test-train-material"],
@@ -94,6 +96,58 @@ def test_stage_writes_reports_checkpoints_and_tracks(trained):
 def test_same_seed_gives_identical_metrics(trained):
     (_, a), (_, b) = trained
     assert a == b
+
+
+def tree_digest(root: Path) -> dict[str, str]:
+    return {
+        str(p.relative_to(root)): hashlib.sha256(p.read_bytes()).hexdigest() for p in root.rglob("*") if p.is_file()
+    }
+
+
+def test_same_seed_gives_a_byte_identical_dvc_out(trained):
+    """Two runs of one seed, in other folders and MLflow runs: every file DVC hashes for the stage (the
+    out and the per-view CSV) has the same bytes, so `dvc.lock` does not change on a re-run. The
+    checkpoints, which name their run and folder, live outside the out."""
+    from pipeline.systems.trainer import resume_checkpoint
+
+    (a, _), (b, _) = trained
+    out_a, out_b = tree_digest(a / "outputs" / "train_material"), tree_digest(b / "outputs" / "train_material")
+    assert out_a == out_b and set(out_a) == {"model.pt"}
+    views = "reports/train_material/test_views.csv"
+    assert (a / views).read_bytes() == (b / views).read_bytes()
+    run_ids = [resume_checkpoint("last", t / "outputs" / "checkpoints" / "train_material")[1] for t in (a, b)]
+    assert run_ids[0] and run_ids[1] and run_ids[0] != run_ids[1]  # what would have changed the out's hash
+
+
+def read_views(path: Path) -> dict[str, list]:
+    with path.open(newline="") as f:
+        rows = list(csv.DictReader(f))
+    return {k: [r[k] if k == "id" else float(r[k]) for r in rows] for k in rows[0]}
+
+
+def test_per_view_scores_average_to_the_test_metrics(trained, micro_shards):
+    """test_views.csv: one row per test view, the model's and every baseline's score on it; each column's
+    mean over views is the stage's test number (the test pass averages the same per-image values)."""
+    from pipeline.data.datasets import ShardDataset
+    from pipeline.systems.material import METRICS
+    from pipeline.systems.material_baselines import BASELINE_MAPS
+
+    tmp, metrics = trained[0]
+    views = read_views(tmp / "reports" / "train_material" / "test_views.csv")
+    test_split = ShardDataset(micro_shards, "test", lighting=False)
+    assert views["id"] == [test_split[i]["id"] for i in range(len(test_split))]
+    expected = [f"model/{m}" for m in METRICS] + [f"{b}/{m}" for b, ms in BASELINE_MAPS.items() for m in ms]
+    assert list(views)[1:] == expected
+    for column in expected:
+        values = np.array(views[column])
+        assert np.isfinite(values).all(), column
+        key = f"test/{column.removeprefix('model/')}" if column.startswith("model/") else f"baseline/{column}"
+        assert values.mean() == pytest.approx(metrics[key], rel=1e-5), column  # float32 in the test pass
+    runs = mlflow.search_runs(
+        experiment_names=["test-train-material"], filter_string="tags.stage = 'train_material'", output_format="list"
+    )
+    artifacts = {a.path for r in runs for a in mlflow.MlflowClient().list_artifacts(r.info.run_id, "reports")}
+    assert "reports/test_views.csv" in artifacts
 
 
 def test_resume_from_last_continues_the_step_count(trained, micro_shards, tmp_path):
@@ -112,7 +166,7 @@ def test_resume_from_last_continues_the_step_count(trained, micro_shards, tmp_pa
         def __reduce__(self):
             return (Path.touch, (marker,))
 
-    evil = tmp_path / "evil" / "outputs" / "train_material" / "checkpoints" / "last.ckpt"
+    evil = tmp_path / "evil" / "outputs" / "checkpoints" / "train_material" / "last.ckpt"
     evil.parent.mkdir(parents=True)
     evil.write_bytes(pickle.dumps({"state_dict": {}, "x": Payload()}))
     with pytest.raises(ValueError, match="not a weights-only checkpoint"):
@@ -168,7 +222,7 @@ def test_predict_rejects_bad_inputs_and_checkpoints(trained, tmp_path, capsys):
     torch.save({**blob, "input_size": [48, 64], "depth_scale": 1.0}, wrong)
     assert main(["predict", str(photo), "--out", str(tmp_path / "o"), "--checkpoint", str(wrong)]) == 2
     assert "incompatible" in capsys.readouterr().err
-    ckpt = trained[0][0] / "outputs" / "train_material" / "checkpoints" / "last.ckpt"
+    ckpt = trained[0][0] / "outputs" / "checkpoints" / "train_material" / "last.ckpt"
     assert main(["predict", str(photo), "--out", str(tmp_path / "o"), "--checkpoint", str(ckpt)]) == 2
     assert "holds no depth scale" in capsys.readouterr().err
     assert not (tmp_path / "o").exists()  # nothing written by a refused call

@@ -4,8 +4,8 @@ import pytest
 import torch
 
 from pipeline.metrics.synthetic import albedo_mse, depth_log_mse, ls_scale, normal_angle
-from pipeline.systems.losses import MaterialLoss, depth_loss
 from pipeline.systems.material_baselines import BASELINE_MAPS, MaterialBaselines, accuracy_gate
+from pipeline.systems.material_losses import MaterialLoss, depth_loss
 
 
 def _batch(B=2, H=6, W=8, seed=0):
@@ -91,7 +91,7 @@ def test_accuracy_gate_needs_the_margin_on_every_map():
 
 
 def test_metallic_bce_is_the_binary_cross_entropy_and_corrects_confident_misses():
-    from pipeline.systems.losses import material_loss
+    from pipeline.systems.material_losses import material_loss
 
     b = _batch()
     p = torch.full_like(b["material"], 0.02, requires_grad=True)
@@ -161,7 +161,7 @@ def test_released_perceptual_term_is_a_pooled_mask_l2_on_relu3_3_over_four_maps(
 
 
 def test_depth_loss_in_max_units_is_scale_free_and_names_bad_units():
-    from pipeline.systems.losses import depth_loss
+    from pipeline.systems.material_losses import depth_loss
 
     b = _batch()
     pred = b["depth"] * 0.37 + 0.05

@@ -65,3 +65,32 @@ def test_sweep_callback_nests_job_runs_under_one_parent():
     assert mlflow.active_run() is None
     assert {mlflow.get_run(c).data.tags["mlflow.parentRunId"] for c in children} == {parent}
     assert mlflow.get_run(parent).data.tags["sweep"] == "true"
+
+
+def test_experiment_is_typed_as_model_training(tmp_path):
+    """MLflow 3's UI opens an experiment tagged `mlflow.experimentKind=custom_model_development` in its
+    model-training view: a new experiment gets the tag, an existing one without it gains it, a kind
+    someone chose is kept."""
+    from pipeline.tracking.mlflow_run import EXPERIMENT, activate_experiment
+
+    client = mlflow.MlflowClient()
+
+    def kind(name: str) -> str | None:
+        return client.get_experiment_by_name(name).tags.get("mlflow.experimentKind")
+
+    def activate(name: str) -> None:
+        activate_experiment(OmegaConf.create({"tracking": {"uri": None, "experiment": name}}))
+
+    new, old, chosen = (f"kind-{k}-{tmp_path.name}" for k in ("new", "old", "chosen"))
+    activate(new)
+    assert kind(new) == "custom_model_development"
+    client.create_experiment(old, artifact_location=(tmp_path / "old").as_uri())
+    assert kind(old) is None
+    activate(old)
+    assert kind(old) == "custom_model_development"
+    client.create_experiment(
+        chosen, artifact_location=(tmp_path / "chosen").as_uri(), tags={"mlflow.experimentKind": "genai_development"}
+    )
+    activate(chosen)
+    assert kind(chosen) == "genai_development"
+    activate(EXPERIMENT)  # back to the project's experiment for the tests that follow in this process

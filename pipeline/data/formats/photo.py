@@ -1,8 +1,10 @@
-"""Photos at the pipeline's edge: the one sRGB curve and the one photo-to-linear reader.
+"""Photos at the pipeline's edge: the one sRGB curve, the one display tone map and the one
+photo-to-linear reader.
 
-Inside the pipeline images are linear RGB (DESIGN.md section 3). Every 8-bit photo that enters (IIW,
+Inside the pipeline images are linear RGB (docs/design.md, section 3). Every 8-bit photo that enters (IIW,
 NYUv2, `invrender predict`, stand-ins) is decoded with the sRGB curve (IEC 61966-2-1), and every
-linear image written as a photo is encoded with its inverse.
+linear image written as a photo is encoded with its inverse. HDR radiance shown to people (figures, the
+PNG beside an HDR `invrender insert` result) goes through `tonemap`.
 """
 
 from __future__ import annotations
@@ -31,6 +33,18 @@ def linear_to_srgb(v: np.ndarray) -> np.ndarray:
     """The sRGB encoding curve (inverse of `srgb_to_linear`), clipping to [0, 1] first."""
     v = np.clip(np.asarray(v, np.float64), 0.0, 1.0)
     return np.where(v <= 0.0031308, 12.92 * v, 1.055 * v ** (1 / 2.4) - 0.055)
+
+
+def tonemap(hdr: np.ndarray, exposure: float | None = None) -> np.ndarray:
+    """The display tone map for HDR radiance (..., 3), values in [0, 1]: times `exposure` (by default the
+    one that puts the median positive value at 0.3), Reinhard x / (1 + x), then a 1/2.2 gamma. NaN and
+    +inf show as 0."""
+    x = np.nan_to_num(np.asarray(hdr, float), nan=0.0, posinf=0.0)
+    if exposure is None:
+        med = np.median(x[x > 0]) if (x > 0).any() else 1.0
+        exposure = 0.3 / max(med, 1e-6)
+    x = x * exposure
+    return np.clip((x / (1 + x)) ** (1 / 2.2), 0, 1)
 
 
 def srgb8_to_linear(photo: np.ndarray) -> np.ndarray:

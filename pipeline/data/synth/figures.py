@@ -4,23 +4,11 @@ from __future__ import annotations
 
 from pathlib import Path
 
-import matplotlib
+import numpy as np
+from matplotlib.figure import Figure
 
-matplotlib.use("Agg")
-import matplotlib.pyplot as plt  # noqa: E402
-import numpy as np  # noqa: E402
-
-from pipeline.data import interiorverse as iv  # noqa: E402
-
-
-def tonemap(hdr: np.ndarray, exposure: float | None = None) -> np.ndarray:
-    """Display transform for HDR radiance: exposure to a median of 0.3, Reinhard, then sRGB-ish gamma."""
-    x = np.nan_to_num(np.asarray(hdr, float), nan=0.0, posinf=0.0)
-    if exposure is None:
-        med = np.median(x[x > 0]) if (x > 0).any() else 1.0
-        exposure = 0.3 / max(med, 1e-6)
-    x = x * exposure
-    return np.clip((x / (1 + x)) ** (1 / 2.2), 0, 1)
+from pipeline.data import interiorverse as iv
+from pipeline.data.formats.photo import tonemap
 
 
 def _light_panel(light: dict | None) -> tuple[np.ndarray | None, np.ndarray | None]:
@@ -45,7 +33,8 @@ def contact_sheet(root: str | Path, views: list[tuple[str, str]], path: str | Pa
         "surface probe L_i",
         "free point L_i",
     ]
-    fig, axes = plt.subplots(len(views), len(cols), figsize=(2.0 * len(cols), 1.75 * len(views) + 0.4), squeeze=False)
+    fig = Figure(figsize=(2.0 * len(cols), 1.75 * len(views) + 0.4))
+    axes = fig.subplots(len(views), len(cols), squeeze=False)
     for r, (scene, view) in enumerate(views):
         check = iv.read_view(root, scene, view)
         if not check.ok:
@@ -84,5 +73,4 @@ def contact_sheet(root: str | Path, views: list[tuple[str, str]], path: str | Pa
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     fig.savefig(path, dpi=110)
-    plt.close(fig)
     return path

@@ -4,7 +4,7 @@ Variant: `llvm_ad_rgb` is ~2.4x faster but needs libLLVM 19 (LLVM 15/16 load and
 process* on the first render), so it is probed by a tiny render in a subprocess; `scalar_rgb` is the
 fallback. The vectorised code paths below run on whole ray batches in llvm and loop per ray in scalar.
 
-Ground truth is exact at pixel centres: one ray per pixel centre (the DESIGN.md camera convention) is
+Ground truth is exact at pixel centres: one ray per pixel centre (the camera convention of docs/design.md, section 3) is
 intersected with the scene and the BSDF's parameters are evaluated at the hit, so no anti-aliasing
 blends depth, normals or materials across edges.
 """
@@ -89,7 +89,7 @@ def _is_vectorised() -> bool:
 
 
 # ----------------------------------------------------------------------------------------------------
-# Cameras (DESIGN.md section 3: OpenGL view space, pixel centres at +0.5)
+# Cameras (docs/design.md, section 3: OpenGL view space, pixel centres at +0.5)
 
 
 def world_from_view(camera: Camera) -> np.ndarray:

@@ -1,6 +1,6 @@
 """One view of a generated room: ground-truth maps at pixel centres, the beauty image, lighting probes.
 
-All outputs follow DESIGN.md section 3/4: view space is OpenGL (x right, y up, camera looks down -z),
+All outputs follow docs/design.md, sections 3 and 4: view space is OpenGL (x right, y up, camera looks down -z),
 depth is z-depth in millimetres (inf on misses), normals are unit view-space vectors.
 """
 

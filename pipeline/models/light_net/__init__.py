@@ -1,4 +1,4 @@
-"""LightNet: spatially-varying incident radiance L_i(p, wi) from one image (DESIGN.md section 5).
+"""LightNet: spatially-varying incident radiance L_i(p, wi) from one image (docs/design.md, section 5).
 
 For a ray from surface point p along wi, screen-space ray tracing finds where it lands in the image; the
 local branch predicts the radiance leaving that pixel, the out-of-view branch volume-renders a

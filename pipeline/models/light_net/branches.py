@@ -1,4 +1,4 @@
-"""LightNet's two branches (DESIGN.md section 5).
+"""LightNet's two branches (docs/design.md, section 5).
 
 Local branch: multi-scale CNN features of the input image sampled at the SSRT hit pixel; an MLP over the
 Fourier-encoded direction, the feature and the G-buffers at the hit (Kd, Ks, normal, roughness) gives the
