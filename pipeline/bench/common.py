@@ -44,6 +44,17 @@ def threads(n: int) -> str:
     return f"{n} thread" + ("s" if n != 1 else "")
 
 
+def add_threads_option(parser) -> None:
+    """`--threads N`: torch's intra-op threads for the run (default: torch's own). 1 keeps OpenMP from
+    spin-waiting when other work shares the CPU; the JSON records the count either way."""
+    parser.add_argument("--threads", type=int, default=None, help="torch intra-op threads (default: torch's own)")
+
+
+def apply_threads(n: int | None) -> None:
+    if n is not None:
+        torch.set_num_threads(n)
+
+
 def machine(device: str = "cpu") -> dict:
     """Platform, versions, CPU count, torch's intra-op thread count and the device the bench ran on."""
     return {

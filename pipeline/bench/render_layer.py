@@ -30,7 +30,7 @@ import torch
 from matplotlib.figure import Figure
 from tqdm import tqdm
 
-from pipeline.bench.common import median_seconds, publish, quoted, threads
+from pipeline.bench.common import add_threads_option, apply_threads, median_seconds, publish, quoted, threads
 from pipeline.bench.scenes import BoxRoom
 from pipeline.metrics.lighting import RELMSE_EPS, relmse_terms
 from pipeline.models.render_layer import MCRenderLayer
@@ -420,17 +420,10 @@ def main(argv=None) -> None:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--quick", action="store_true", help="fewer budgets, no memory probe (for a smoke run)")
     p.add_argument("--repeats", type=int, default=3)
-    p.add_argument(
-        "--threads",
-        type=int,
-        default=None,
-        help="torch intra-op threads (default: torch's own; 1 keeps OpenMP from spin-waiting on a CPU that "
-        "other work shares)",
-    )
+    add_threads_option(p)
     p.add_argument("--ref-rounds", type=int, default=512, help="reference rounds (4 samples per pixel each)")
     a = p.parse_args(argv)
-    if a.threads:
-        torch.set_num_threads(a.threads)
+    apply_threads(a.threads)
     t0 = time.perf_counter()
     report = run(a.quick, a.repeats, a.ref_rounds)
     path = publish("render_layer", report, plot)

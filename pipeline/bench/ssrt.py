@@ -21,7 +21,15 @@ from matplotlib.figure import Figure
 from matplotlib.ticker import LogLocator, NullFormatter, ScalarFormatter
 from tqdm import tqdm
 
-from pipeline.bench.common import device_name, median_seconds, publish, quoted, threads
+from pipeline.bench.common import (
+    add_threads_option,
+    apply_threads,
+    device_name,
+    median_seconds,
+    publish,
+    quoted,
+    threads,
+)
 from pipeline.bench.scenes import BoxRoom, score_ssrt, ssrt_rays
 from pipeline.ops import ssrt
 
@@ -168,17 +176,10 @@ def main(argv=None) -> None:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--device", default="cpu")
     p.add_argument("--repeats", type=int, default=3)
-    p.add_argument(
-        "--threads",
-        type=int,
-        default=None,
-        help="torch intra-op threads (default: torch's own; 1 keeps OpenMP from spin-waiting on a CPU that "
-        "other work shares)",
-    )
+    add_threads_option(p)
     p.add_argument("--reference", default=None, help="Python file defining trace(...) to time on the same rays")
     a = p.parse_args(argv)
-    if a.threads:
-        torch.set_num_threads(a.threads)
+    apply_threads(a.threads)
     report = run(repeats=a.repeats, device=a.device, reference=a.reference)
     path = publish("ssrt", report, plot, device=a.device)
     m = report["measured"]
