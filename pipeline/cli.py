@@ -312,6 +312,100 @@ def edit_material(
     return _write_result(result, png, exr, Path(photo).suffix.lower() == ".exr")
 
 
+ENVMAP_FOV = 70.0  # horizontal field of view assumed for the photo (degrees): insert's and edit's default
+ENVMAP_SEED = 0  # LightNet's out-of-view samples: the same call writes the same file
+ENVMAP_RAYS = 1 << 16  # LightNet queries per chunk (memory stays bounded for wide maps)
+MAX_ENVMAP_WIDTH = MAX_SIDE
+
+
+def envmap_at(
+    photo,
+    at: str,
+    out,
+    width: int = 64,
+    offset: float = 0.05,
+    material_path=DEFAULT_MATERIAL,
+    light_path=DEFAULT_LIGHT,
+) -> Path:
+    """`invrender envmap`: LightNet's incident radiance at the predicted surface point under pixel `at`
+    ("row,col"), lifted `offset` metres along its predicted normal (turned towards the camera where the
+    prediction faces away), as a `width` x `width`/2 equirectangular HDR map in the photo's linear units
+    (layout `ops.envmap.equirect_directions`: row r at theta = pi (r + .5)/(W/2) from +y, column c at
+    phi = 2 pi ((c + .5)/W - .5) from -z towards +x). Each texel is the mean over the centres of a k x k
+    grid of its solid angle (`ops.envmap.equirect_texel_directions`, k = `data.lighting.EVAL_TEXEL_STRATA`),
+    as the evaluation scores LightNet against the ground truth's texel means. Writes the float32 EXR
+    `out` and returns its path."""
+    import numpy as np
+    import torch
+
+    from pipeline.data.formats.exr import write_exr
+    from pipeline.data.lighting import EVAL_TEXEL_STRATA
+    from pipeline.ops.camera import backproject
+    from pipeline.ops.envmap import equirect_texel_directions
+
+    out = Path(out)
+    if out.suffix.lower() != ".exr":
+        raise EditError(f"--out {out}: give a .exr file name (the map is written as float32 EXR)")
+    if not out.parent.is_dir() or not os.access(out.parent, os.W_OK):
+        raise EditError(f"--out {out}: folder {out.parent} does not exist or is not writable")
+    if out.is_dir():
+        raise EditError(f"--out {out}: is a folder")
+    if width < 2 or width % 2 or width > MAX_ENVMAP_WIDTH:
+        raise EditError(f"--width {width}: must be a positive even integer (at most {MAX_ENVMAP_WIDTH})")
+    if not math.isfinite(offset) or offset < 0:
+        raise EditError(f"--offset {offset}: must be a finite distance in metres, >= 0")
+    row, col = _parse_pixel(at)
+    view = _prepare_photo(photo, material_path, light_path, ENVMAP_FOV)
+    gb, fov = view.pred, view.fov
+    H, W = view.photo.shape[:2]
+    if not (0 <= row < H and 0 <= col < W):
+        raise EditError(f"--at {at}: pixel (row {row}, col {col}) is outside the {W}x{H} image")
+    z = float(gb["depth"][0, row, col])
+    n = gb["normal"][0, :, row, col].double()
+    if not math.isfinite(z) or z <= 0 or not bool(torch.isfinite(n).all()) or float(n.norm()) < 1e-6:
+        raise EditError(f"--at {at}: no valid surface at that pixel (predicted depth {z})")
+    point = backproject(gb["depth"], fov)[0, row, col].double()
+    n = n / n.norm()
+    if float(n @ point) > 0:  # a surface seen from behind (a prediction error): lift it on its visible side
+        n = -n
+    origin = (point + offset * n).float()
+    rows = width // 2
+    dirs = equirect_texel_directions(width, EVAL_TEXEL_STRATA).float()  # (rows, W, S, 3)
+    S = dirs.shape[2]
+    generator = torch.Generator().manual_seed(ENVMAP_SEED)
+    chunk = max(1, ENVMAP_RAYS // (width * S))  # map rows per LightNet call
+    parts = []
+    with torch.no_grad():
+        for r0 in range(0, rows, chunk):
+            wi = dirs[r0 : r0 + chunk].reshape(-1, 3)
+            radiance = view.net(
+                view.ctx_pred,
+                gb,
+                fov,
+                origin.expand(len(wi), 3).contiguous(),
+                wi,
+                torch.zeros(len(wi), dtype=torch.long),
+                generator,
+            )["radiance"]
+            parts.append(radiance.reshape(-1, width, S, 3).mean(2))
+    envmap = np.ascontiguousarray(torch.cat(parts).numpy(), np.float32)  # (rows, W, 3)
+    tmp = out.with_name(f".{out.name}.part.exr")
+    try:
+        write_exr(tmp, envmap)
+        os.replace(tmp, out)
+    except OSError as exc:
+        raise EditError(f"--out {out}: cannot write ({exc.strerror or exc})") from exc
+    finally:
+        tmp.unlink(missing_ok=True)
+    return out
+
+
+def _envmap(args) -> int:
+    kwargs = {"material_path": args.material_net, "light_path": args.light_net}
+    print(envmap_at(args.photo, args.at, args.out, args.width, args.offset, **kwargs))
+    return 0
+
+
 def _render_kwargs(args) -> dict:
     """The options `insert` and `edit` share (`_add_render_args`)."""
     return {
@@ -414,6 +508,19 @@ def main(argv: list[str] | None = None) -> int:
     e.add_argument("--albedo", default=None, help="R,G,B linear base colour in [0, 1]")
     _add_render_args(e)
     e.set_defaults(func=_edit)
+    m = sub.add_parser(
+        "envmap", help="LightNet's incident light at a pixel's surface point as an equirectangular HDR EXR"
+    )
+    m.add_argument("photo")
+    m.add_argument("--at", required=True, help="ROW,COL: the pixel whose predicted surface point the map is taken at")
+    m.add_argument("--out", required=True, help="output .exr (W x W/2, float32, the photo's linear units)")
+    m.add_argument("--width", type=int, default=64, help="map width W, even (default %(default)s)")
+    m.add_argument(
+        "--offset", type=float, default=0.05, help="metres above the surface, along its normal (default %(default)s)"
+    )
+    m.add_argument("--material-net", default=DEFAULT_MATERIAL, help="MaterialNet export (default: %(default)s)")
+    m.add_argument("--light-net", default=DEFAULT_LIGHT, help="LightNet export (default: %(default)s)")
+    m.set_defaults(func=_envmap)
     args = parser.parse_args(argv)
     from pipeline.data.formats.photo import PhotoError
     from pipeline.data.iiw import IIWError
