@@ -22,7 +22,8 @@ class MCRenderLayer(nn.Module):
 
     estimator: importance | uniform | li2020; spp: samples per valid pixel; adaptive: distribute
     spp x #valid samples by BRDF lobe (`mc.allocate_samples`) instead of evenly; li_size: (n_theta,
-    n_phi) of the li2020 grid; chunk: samples per chunk (bounds memory)."""
+    n_phi) of the li2020 grid; chunk: samples per chunk (bounds memory); checkpoint_chunks: recompute
+    chunks in backward (None: only when a render has more than one, `mc.estimate`)."""
 
     def __init__(
         self,
@@ -31,6 +32,7 @@ class MCRenderLayer(nn.Module):
         adaptive: bool = False,
         li_size: tuple[int, int] = (8, 16),
         chunk: int = 1 << 16,
+        checkpoint_chunks: bool | None = None,
     ):
         super().__init__()
         if estimator not in mc.ESTIMATORS:
@@ -39,6 +41,7 @@ class MCRenderLayer(nn.Module):
             raise ValueError(f"render.spp={spp}: must be >= 1")
         self.estimator, self.spp, self.adaptive = estimator, int(spp), bool(adaptive)
         self.li_size, self.chunk = tuple(li_size), int(chunk)
+        self.checkpoint_chunks = checkpoint_chunks
 
     @classmethod
     def from_config(cls, render: Mapping, spp_key: str = "spp") -> MCRenderLayer:
@@ -79,7 +82,20 @@ class MCRenderLayer(nn.Module):
         def local_radiance(k: torch.Tensor, wi: torch.Tensor) -> torch.Tensor:
             return radiance(idx[k], wi)
 
-        d, s = mc.estimate(local_radiance, n, wo, a, r, m, counts, generator, self.estimator, self.chunk, self.li_size)
+        d, s = mc.estimate(
+            local_radiance,
+            n,
+            wo,
+            a,
+            r,
+            m,
+            counts,
+            generator,
+            self.estimator,
+            self.chunk,
+            self.li_size,
+            self.checkpoint_chunks,
+        )
         out = {}
         for name, val in (("diffuse", d), ("specular", s)):
             img = torch.zeros(B * H * W, 3, dtype=val.dtype, device=val.device).index_copy(0, idx, val)
@@ -135,5 +151,6 @@ class MCRenderLayer(nn.Module):
             self.estimator,
             self.chunk,
             self.li_size,
+            self.checkpoint_chunks,
         )
         return diffuse + specular, b

@@ -9,8 +9,11 @@ Estimators (docs/design.md, section 5):
 Per-pixel sample counts may differ (adaptive sampling): samples are numbered flat, pixel by pixel, and
 processed in chunks of `chunk` samples. A chunk finds its pixels from the cumulative counts, draws its
 random numbers from a counter-based hash of (seed, sample number) and sums its contributions per pixel
-itself; with gradients on it is checkpointed (recomputed in backward). So no per-sample tensor outlives
-its chunk and memory does not grow with the sample count, and results do not depend on the chunk size.
+itself; with gradients on and more than one chunk, each is checkpointed (recomputed in backward). So no
+per-sample tensor outlives its chunk and memory does not grow with the sample count, and results do not
+depend on the chunk size. A single chunk (a training step's few pixels) is not checkpointed: recomputing
+it would run the radiance callback twice per step, and a callback that draws random numbers (LightNet's
+volume samples) would draw different ones in backward than in forward.
 Unbiased by construction: directions and pdf are detached, there is no clamp on the pdf, and a sample
 with pdf 0 contributes exactly 0. Gradients reach albedo, roughness, metallic, normal (through f and
 the cosine) and the radiance callback.
@@ -139,6 +142,7 @@ def estimate(
     estimator: str = "importance",
     chunk: int = 1 << 16,
     li_size: tuple[int, int] = (8, 16),
+    checkpoint_chunks: bool | None = None,
 ) -> tuple[torch.Tensor, torch.Tensor]:
     """Reflected radiance (diffuse (N, 3), specular (N, 3)) at N shading points.
 
@@ -146,7 +150,7 @@ def estimate(
     point (N,) long or one int for all (ignored by li2020, which uses its n_theta x n_phi cells);
     radiance_fn(pixel index (M,), wi (M, 3)) -> L_i (M, 3). Points with 0 samples return 0. `generator`
     draws the seed of the counter-based numbers (one draw per call; li2020, whose directions are fixed,
-    draws none)."""
+    draws none). checkpoint_chunks: recompute chunks in backward (None: only when there is more than one)."""
     if estimator not in ESTIMATORS:
         raise ValueError(f"estimator={estimator!r}: choose one of {ESTIMATORS}")
     if not isinstance(generator, torch.Generator):
@@ -182,7 +186,8 @@ def estimate(
             li_dirs,
             li_w,
         )
-        if grads:  # recompute the chunk in backward: memory stays at one chunk whatever the sample count
+        recompute = total > chunk if checkpoint_chunks is None else checkpoint_chunks
+        if grads and recompute:  # recompute each chunk in backward: memory stays at one chunk
             d, sp = checkpoint(_contributions, *args, use_reentrant=False)
         else:
             d, sp = _contributions(*args)

@@ -29,13 +29,15 @@ from pipeline.systems.lighting_baselines import baseline_metrics
 from pipeline.systems.per_view import split_views
 
 QUERY_CHUNK = 8192  # LightNet queries per forward at evaluation (bounds memory)
+MATERIAL_MAPS = ("albedo", "normal", "material", "depth")  # what LightNet reads of MaterialNet's output
 
 
 class LightingSystem(L.LightningModule):
     """light_net: LightNet kwargs; material: a MaterialNet export ({"model", "state_dict", "depth_scale"},
     `models.export.load_material_export`), used when gbuffers == "predicted"; render: the `conf/render/`
     group (estimator, spp, eval_spp, adaptive, li_size, chunk, seed); baselines: the constants of
-    `lighting_baselines` (set before `Trainer.test` to score them beside the model)."""
+    `lighting_baselines` (set before `Trainer.test` to score them beside the model); cache_gbuffers: the
+    frozen MaterialNet runs once per view, not once per step (`material_maps`)."""
 
     def __init__(
         self,
@@ -55,6 +57,7 @@ class LightingSystem(L.LightningModule):
         optimizer: Callable | None = None,
         scheduler: Callable | None = None,
         seed: int = 0,
+        cache_gbuffers: bool = True,
     ):
         super().__init__()
         if gbuffers not in ("predicted", "ground_truth"):
@@ -86,6 +89,8 @@ class LightingSystem(L.LightningModule):
         self.eval_rows: list[dict] = []
         self.test_views: list[dict] = []  # one row per test view: its id and its own scores (test_step)
         self.validated_at_step = -1
+        self.cache_gbuffers = bool(cache_gbuffers)  # the frozen MaterialNet's maps once per view (`material_maps`)
+        self._material_cache: dict[tuple, dict[str, torch.Tensor]] = {}
 
     # ------------------------------------------------------------------ pieces
     def eval_generator(self) -> torch.Generator:
@@ -100,12 +105,30 @@ class LightingSystem(L.LightningModule):
             gb = {k: batch[k] for k in ("albedo", "normal", "material")}
             depth = batch["depth"][:, 0]
         else:
-            self.material.eval()
-            pred = self.material(batch["im"])
+            pred = self.material_maps(batch)
             gb = {k: pred[k] for k in ("albedo", "normal", "material")}
             depth = pred["depth"][:, 0] * self.depth_scale
         gb["depth"] = torch.where(batch["mask"][:, 0], depth, torch.zeros_like(depth))
         return gb
+
+    @torch.no_grad()
+    def material_maps(self, batch: dict) -> dict[str, torch.Tensor]:
+        """The frozen MaterialNet's albedo, normal, material and depth (B, C, H, W) for the batch's views.
+
+        MaterialNet is frozen, so a view's maps never change: each view's are computed once and kept,
+        keyed by its id and a fingerprint of its input image (an augmented or edited image is a new key),
+        and every later epoch reads them instead of running the network again (`cache_gbuffers`)."""
+        self.material.eval()
+        im = batch["im"]
+        if not self.cache_gbuffers or "id" not in batch:
+            return self.material(im)
+        keys = [(str(v), tuple(im.shape[1:]), float(im[i].double().sum())) for i, v in enumerate(batch["id"])]
+        missing = [i for i, k in enumerate(keys) if k not in self._material_cache]
+        if missing:
+            pred = self.material(im[missing])
+            for j, i in enumerate(missing):
+                self._material_cache[keys[i]] = {k: pred[k][j] for k in MATERIAL_MAPS}
+        return {k: torch.stack([self._material_cache[key][k] for key in keys]) for k in MATERIAL_MAPS}
 
     @staticmethod
     def fov(batch: dict) -> torch.Tensor:

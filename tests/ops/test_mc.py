@@ -218,3 +218,25 @@ def test_counter_uniform_is_uniform_and_independent():
     assert abs(np.corrcoef(u[:, 0], u[:, 1])[0, 1]) < 0.01 and abs(np.corrcoef(u[:-1, 0], u[1:, 0])[0, 1]) < 0.01
     assert (u >= 0).all() and (u < 1).all()
     assert not np.array_equal(u, mc.counter_uniform(12346, torch.arange(200_000)).numpy())
+
+
+def test_one_chunk_runs_the_radiance_callback_once_and_chunked_gradients_agree():
+    """A training step's few samples fit one chunk: not checkpointed, so forward and backward see one call
+    of the callback (a random callback would otherwise draw again in backward). Chunked and unchunked
+    estimates draw the same samples, so their gradients agree."""
+    n, wo, a, r, mt = _points(50, 0.4, 30.0, 0.5)
+    grads, calls = {}, {}
+    for chunk in (1 << 16, 64):
+        s = torch.ones(3, dtype=F64, requires_grad=True)
+        count = [0]
+
+        def fn(k, wi, s=s, count=count):
+            count[0] += 1
+            return _sky(wi) * s
+
+        d, sp = mc.estimate(fn, n, wo, a, r, mt, 8, torch.Generator().manual_seed(3), chunk=chunk)
+        (d + sp).sum().backward()
+        grads[chunk], calls[chunk] = s.grad.clone(), count[0]
+    assert calls[1 << 16] == 1
+    assert calls[64] == 2 * math.ceil(50 * 8 / 64)  # checkpointed: each chunk again in backward
+    torch.testing.assert_close(grads[64], grads[1 << 16], rtol=1e-12, atol=1e-12)

@@ -1,0 +1,240 @@
+"""`python -m pipeline.bench.train_step`: the time of one LightNet training step at `tiny` settings, and
+what each saving buys, side by side on the same batches.
+
+Settings, cumulative (`SETTINGS`): the step as it was (the frozen MaterialNet run on every step, the
+re-render's single sample chunk recomputed in backward), then MaterialNet's maps computed once per view
+(`LightingSystem.material_maps`), then the single chunk kept instead of recomputed (`mc.estimate`),
+then the SSRT march as a compiled kernel (`model.light_net.ssrt_compiled`). Every setting trains its
+own copy of the same seeded network on the same batches; their steps are interleaved round by round, so
+load on the machine falls on all alike. Reported: the median step time per setting (steady state, after
+a warm-up pass over the batches that also fills the cache and compiles), its ratio to the first, and
+the profiler's top operations of the first and last settings.
+
+Same results at equal steps: the first and last settings, trained the same `--steps` steps from the same
+initialisation, are scored on the same test views with the same evaluation draws; the JSON holds each
+metric's paired per-view difference (last minus first) with its bootstrap interval. The two draw their
+random numbers in different orders (the recomputed chunk drew again), so they are equal in
+distribution, not bit for bit. Writes reports/bench/train_step.json and a PNG.
+"""
+
+from __future__ import annotations
+
+import argparse
+import statistics
+import time
+
+import torch
+from matplotlib.figure import Figure
+from tqdm import tqdm
+
+from pipeline.bench.common import add_threads_option, apply_threads, publish
+from pipeline.metrics.bootstrap import paired_bootstrap
+
+SETTINGS = (  # name, (cache MaterialNet's maps, recompute a single chunk, compiled SSRT)
+    ("as before", (False, True, False)),
+    ("+ MaterialNet once per view", (True, True, False)),
+    ("+ one-chunk render kept", (True, None, False)),
+    ("+ compiled SSRT", (True, None, True)),
+)
+SCORES = ("surf_light_nmse", "free_light_nmse", "surf_light_log_l1", "free_light_log_l1", "render_psnr")
+
+
+def build(setting: tuple, seed: int, overrides: list[str]):
+    """A `train_lighting` LightingSystem (tiny, predicted G-buffers) under `setting`, and its optimiser."""
+    from hydra.utils import instantiate
+
+    from pipeline.runs.ablate import compose
+    from pipeline.runs.train_lighting import build_system
+
+    cache, recompute, compiled = setting
+    cfg = compose("train_lighting", [f"model.light_net.ssrt_compiled={str(compiled).lower()}", *overrides])
+    torch.manual_seed(seed)
+    system = build_system(cfg)
+    system.cache_gbuffers = cache
+    system.train_layer.checkpoint_chunks = recompute
+    system.log = lambda *args, **kwargs: None
+    return system, instantiate(cfg.optim.optimizer)(system.net.parameters()), cfg
+
+
+def step(system, optimizer, batch) -> float:
+    """One optimiser step; its wall time (s)."""
+    t0 = time.perf_counter()
+    loss = system.training_step(batch, 0)
+    optimizer.zero_grad(set_to_none=True)
+    loss.backward()
+    optimizer.step()
+    return time.perf_counter() - t0
+
+
+def top_operations(system, optimizer, batches, rows: int = 15) -> list[dict]:
+    """The profiler's operations with the most self CPU time over a pass of `batches`."""
+    from torch.profiler import ProfilerActivity, profile
+
+    with profile(activities=[ProfilerActivity.CPU]) as prof:
+        for batch in batches:
+            step(system, optimizer, batch)
+    events = sorted(prof.key_averages(), key=lambda e: e.self_cpu_time_total, reverse=True)[:rows]
+    total = sum(e.self_cpu_time_total for e in prof.key_averages())
+    return [
+        {
+            "name": e.key,
+            "self_cpu_ms_per_step": e.self_cpu_time_total / 1e3 / len(batches),
+            "share": e.self_cpu_time_total / max(total, 1),
+            "calls_per_step": e.count / len(batches),
+        }
+        for e in events
+    ]
+
+
+@torch.no_grad()
+def paired_scores(systems, views) -> dict:
+    """Per-view scores of each system on `views` (batches), then last minus first per metric."""
+    per = []
+    for system in systems:
+        system.eval()
+        rows = []
+        for batch in views:
+            vs = [{"id": v} for v in batch["id"]]
+            system.evaluate_batch(batch, vs)
+            rows.extend(vs)
+        per.append(rows)
+        system.train()
+    out = {}
+    for metric in SCORES:
+        a = [r[metric] for r in per[0] if metric in r]
+        b = [r[metric] for r in per[-1] if metric in r]
+        if a and len(a) == len(b):
+            out[metric] = {
+                "first": statistics.fmean(a),
+                "last": statistics.fmean(b),
+                **paired_bootstrap([y - x for x, y in zip(a, b, strict=True)]),
+            }
+    return out
+
+
+def run(
+    batches: int = 6,
+    rounds: int = 3,
+    steps: int = 60,
+    test_views: int = 16,
+    seed: int = 0,
+    data_dir: str = "outputs/preprocess",
+    overrides=(),
+) -> dict:
+    from pipeline.data.datamodules import InteriorVerseDataModule
+
+    dm = InteriorVerseDataModule(data_dir, batch_size=4, seed=seed, lighting=True)
+    dm.setup("fit")
+    dm.setup("test")
+    it = iter(dm.train_dataloader())
+    train = [next(it) for _ in range(batches)]
+    built = [(name, *build(s, seed, list(overrides))) for name, s in SETTINGS]
+    for name, system, opt, _ in built:  # warm-up: caches filled, kernels compiled
+        for batch in tqdm(train, desc=f"warm-up: {name}"):
+            step(system, opt, batch)
+    times = {name: [] for name, *_ in built}
+    for _ in tqdm(range(rounds), desc="timed rounds"):
+        for batch in train:
+            for name, system, opt, _ in built:
+                times[name].append(step(system, opt, batch))
+    base = statistics.median(times[SETTINGS[0][0]])
+    rows = [
+        {
+            "setting": name,
+            "median_step_s": statistics.median(t),
+            "speedup": base / statistics.median(t),
+            "steps_timed": len(t),
+        }
+        for name, t in times.items()
+    ]
+    profiles = {built[i][0]: top_operations(built[i][1], built[i][2], train[:3]) for i in (0, -1)}
+    # equal results at equal steps: fresh copies of the first and last settings, same init, same batches
+    pair = [build(SETTINGS[i][1], seed, list(overrides)) for i in (0, -1)]
+    loader = dm.train_dataloader()
+    trained = 0
+    bar = tqdm(total=steps, desc="paired training")
+    while trained < steps:
+        for batch in loader:
+            for system, opt, _ in pair:
+                step(system, opt, batch)
+            trained += 1
+            bar.update(1)
+            if trained >= steps:
+                break
+    bar.close()
+    views, n = [], 0
+    for batch in dm.plain_loader("test"):
+        views.append(batch)
+        n += len(batch["im"])
+        if n >= test_views:
+            break
+    return {
+        "settings": rows,
+        "profile_top_operations": profiles,
+        "paired": {
+            "first": SETTINGS[0][0],
+            "last": SETTINGS[-1][0],
+            "steps": steps,
+            "test_views": n,
+            "scores": paired_scores([p[0] for p in pair], views),
+        },
+        "batches": batches,
+        "rounds": rounds,
+        "batch_size": 4,
+        "overrides": list(overrides),
+    }
+
+
+def plot(report: dict, path) -> None:
+    rows = report["settings"]
+    fig = Figure(figsize=(8, 3.6))
+    ax = fig.subplots()
+    y = range(len(rows))
+    ax.barh(y, [r["median_step_s"] * 1e3 for r in rows], color="tab:blue")
+    ax.set_yticks(list(y), [r["setting"] for r in rows], fontsize=8)
+    ax.invert_yaxis()
+    for i, r in enumerate(rows):
+        ax.text(
+            r["median_step_s"] * 1e3,
+            i,
+            f" {r['median_step_s'] * 1e3:.0f} ms ({r['speedup']:.2f}x)",
+            va="center",
+            fontsize=8,
+        )
+    ax.set_xlabel("median LightNet training step (ms), tiny settings, batch of 4 views")
+    ax.set_xlim(0, max(r["median_step_s"] for r in rows) * 1e3 * 1.35)
+    pair = report["paired"]
+    psnr = pair["scores"].get("render_psnr")
+    if psnr is not None:
+        ax.set_title(
+            f"same results: after {pair['steps']} steps, {pair['last']} minus {pair['first']} on "
+            f"{pair['test_views']} test views,\nre-render {psnr['diff']:+.2f} dB [{psnr['lo']:+.2f}, {psnr['hi']:+.2f}] "
+            "(95 % paired bootstrap)",
+            fontsize=8,
+        )
+    fig.tight_layout()
+    fig.savefig(path, dpi=120)
+
+
+def main(argv=None) -> None:
+    p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("--batches", type=int, default=6, help="training batches each setting steps on")
+    p.add_argument("--rounds", type=int, default=3, help="timed passes over those batches")
+    p.add_argument("--steps", type=int, default=60, help="steps of the paired same-results check")
+    p.add_argument("--test-views", type=int, default=16)
+    p.add_argument("--data-dir", default="outputs/preprocess")
+    p.add_argument("--override", action="append", default=[], help="a train_lighting override (repeatable)")
+    add_threads_option(p)
+    a = p.parse_args(argv)
+    apply_threads(a.threads)
+    print(
+        publish(
+            "train_step",
+            run(a.batches, a.rounds, a.steps, a.test_views, data_dir=a.data_dir, overrides=a.override),
+            plot,
+        )
+    )
+
+
+if __name__ == "__main__":
+    main()
