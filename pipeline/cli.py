@@ -330,9 +330,9 @@ def envmap_at(
     """`invrender envmap`: LightNet's incident radiance at the predicted surface point under pixel `at`
     ("row,col"), lifted `offset` metres along its predicted normal (turned towards the camera where the
     prediction faces away), as a `width` x `width`/2 equirectangular HDR map in the photo's linear units
-    (layout `ops.envmap.equirect_directions`: row r at theta = pi (r + .5)/(W/2) from +y, column c at
+    (layout `ops.equirect.equirect_directions`: row r at theta = pi (r + .5)/(W/2) from +y, column c at
     phi = 2 pi ((c + .5)/W - .5) from -z towards +x). Each texel is the mean over the centres of a k x k
-    grid of its solid angle (`ops.envmap.equirect_texel_directions`, k = `data.lighting.EVAL_TEXEL_STRATA`),
+    grid of its solid angle (`ops.equirect.equirect_texel_directions`, k = `data.lighting.EVAL_TEXEL_STRATA`),
     as the evaluation scores LightNet against the ground truth's texel means. Writes the float32 EXR
     `out` and returns its path."""
     import numpy as np
@@ -341,7 +341,7 @@ def envmap_at(
     from pipeline.data.formats.exr import write_exr
     from pipeline.data.lighting import EVAL_TEXEL_STRATA
     from pipeline.ops.camera import backproject
-    from pipeline.ops.envmap import equirect_texel_directions
+    from pipeline.ops.equirect import equirect_texel_directions
 
     out = Path(out)
     if out.suffix.lower() != ".exr":

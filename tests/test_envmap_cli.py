@@ -16,7 +16,8 @@ from pipeline.cli import DEFAULT_LIGHT, DEFAULT_MATERIAL, main
 from pipeline.data.formats.exr import read_exr, write_exr
 from pipeline.data.formats.photo import read_linear
 from pipeline.ops.camera import pixel_directions
-from pipeline.ops.envmap import equirect_directions, equirect_texel_directions, sphere_directions
+from pipeline.ops.envmap import sphere_directions
+from pipeline.ops.equirect import equirect_directions, equirect_texel_directions
 
 
 def test_equirect_directions_follow_the_stated_layout():

@@ -4,9 +4,7 @@ Hemisphere maps (surface probes): rows over the polar angle theta in [0, pi/2] f
 columns over the azimuth phi in [0, 2 pi) from the tangent of `frames.orthonormal_basis` towards its
 bitangent; texel (a, b) is centred at theta = (a + .5)/rows * pi/2, phi = (b + .5)/cols * 2 pi.
 Sphere maps (free points): rows over theta in [0, pi] from +y (up), columns over phi from -z (forward)
-towards +x. Equirectangular maps (`invrender envmap`, `equirect_directions`): sphere maps turned half a
-turn in azimuth, so that the centre column looks forward (-z). Directions point where the light comes
-from (docs/design.md, section 3).
+towards +x. Directions point where the light comes from (docs/design.md, section 3).
 
 A texel's value is the mean radiance over its solid angle (as a box-filtered environment map), not the
 radiance along its centre ray: `texel_directions` draws directions uniformly in solid angle inside
@@ -146,33 +144,3 @@ def _bilinear(radiance: torch.Tensor, probe: torch.Tensor, v: torch.Tensor, phi:
         return flat[(base + r) * cols + c]
 
     return (1 - fa) * ((1 - fb) * at(a0, b0l) + fb * at(a0, b1l)) + fa * ((1 - fb) * at(a1, b0l) + fb * at(a1, b1l))
-
-
-def equirect_directions(width: int) -> np.ndarray:
-    """(W/2, W, 3) unit view-space directions at the texel centres of a W x W/2 equirectangular map, the
-    layout of `invrender envmap`: row r at polar angle theta = pi (r + .5) / (W/2) from +y (up), column c
-    at azimuth phi = 2 pi ((c + .5) / W - .5); d = (sin theta sin phi, cos theta, -sin theta cos phi), so
-    the centre column looks along the camera's forward -z and +x (phi = pi/2) is to its right. W even.
-
-    It is a sphere map (`sphere_directions`) turned by half a turn in azimuth: column c of this layout
-    is column (c + W/2) mod W of a sphere map of the same size."""
-    if width < 2 or width % 2:
-        raise ValueError(f"width={width}: an equirectangular map needs a positive even width")
-    theta = (np.arange(width // 2) + 0.5) / (width // 2) * math.pi
-    phi = 2 * math.pi * ((np.arange(width) + 0.5) / width - 0.5)
-    th, ph = np.meshgrid(theta, phi, indexing="ij")
-    return np.stack([np.sin(th) * np.sin(ph), np.cos(th), -np.sin(th) * np.cos(ph)], -1)
-
-
-def equirect_texel_directions(width: int, k: int, dtype=torch.float64) -> torch.Tensor:
-    """(W/2, W, k*k, 3) unit view-space directions spread inside each texel of the `equirect_directions`
-    layout: the centres of a k x k grid over the texel's solid angle (uniform in cos theta and phi, the
-    `texel_directions` of the ground truth's probes with `square_centres(k)`), no random number. Their
-    mean radiance is the texel's box-filtered value."""
-    if width < 2 or width % 2:
-        raise ValueError(f"width={width}: an equirectangular map needs a positive even width")
-    rows = width // 2
-    row = torch.arange(rows).repeat_interleave(width)
-    col = (torch.arange(width).repeat(rows) + width // 2) % width  # the sphere-map column of each texel
-    d = texel_directions(row, col, square_centres(k, dtype), rows, width)
-    return d.reshape(rows, width, k * k, 3)
