@@ -150,8 +150,15 @@ def tally(model_path: Path, data_dir: str, material_path: Path, split: str = "te
     system = evaluation_system(model_path, material_path)
     dm = InteriorVerseDataModule(data_dir, batch_size=4, lighting=True)
     dm.setup("test" if split == "test" else "fit")
+    return tally_batches(system, tqdm(dm.plain_loader(split), desc=f"light energy ({split})"))
+
+
+@torch.no_grad()
+def tally_batches(system, batches) -> dict[str, EnergyTally]:
+    """An EnergyTally per probe kind of a `LightingSystem` over `batches` (the datamodule's collated
+    views): every texel at the evaluation's stratified directions, LightNet queried as the system tests it."""
     tallies = {kind: EnergyTally() for kind in KINDS}
-    for batch in tqdm(dm.plain_loader(split), desc=f"light energy ({split})"):
+    for batch in batches:
         gen = system.eval_generator()
         fov = system.fov(batch)
         gb = system.gbuffers(batch)

@@ -208,8 +208,8 @@ def plot(report: dict, path) -> None:
     if psnr is not None:
         ax.set_title(
             f"same results: after {pair['steps']} steps, {pair['last']} minus {pair['first']} on "
-            f"{pair['test_views']} test views,\nre-render {psnr['diff']:+.2f} dB [{psnr['lo']:+.2f}, {psnr['hi']:+.2f}] "
-            "(95 % paired bootstrap)",
+            f"{pair['test_views']} test views,\nre-render {psnr['diff']:+.2f} dB "
+            f"[{psnr['lo']:+.2f}, {psnr['hi']:+.2f}] (95 % paired bootstrap)",
             fontsize=8,
         )
     fig.tight_layout()

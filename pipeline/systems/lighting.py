@@ -30,6 +30,10 @@ from pipeline.systems.per_view import split_views
 
 QUERY_CHUNK = 8192  # LightNet queries per forward at evaluation (bounds memory)
 MATERIAL_MAPS = ("albedo", "normal", "material", "depth")  # what LightNet reads of MaterialNet's output
+# lighting.ssrt_depth: the depth SSRT marches against. valid: the masked pixels only (lamps and sky left
+# out, as the ground truth has no material there); every_pixel: MaterialNet's depth on every pixel, so a
+# ray towards a visible lamp or window hits it in screen space, and the local branch reads its radiance
+SSRT_DEPTHS = ("valid", "every_pixel")
 
 
 class LightingSystem(L.LightningModule):
@@ -58,6 +62,7 @@ class LightingSystem(L.LightningModule):
         scheduler: Callable | None = None,
         seed: int = 0,
         cache_gbuffers: bool = True,
+        ssrt_depth: str = "valid",
     ):
         super().__init__()
         if gbuffers not in ("predicted", "ground_truth"):
@@ -91,6 +96,13 @@ class LightingSystem(L.LightningModule):
         self.validated_at_step = -1
         self.cache_gbuffers = bool(cache_gbuffers)  # the frozen MaterialNet's maps once per view (`material_maps`)
         self._material_cache: dict[tuple, dict[str, torch.Tensor]] = {}
+        if ssrt_depth not in SSRT_DEPTHS:
+            raise ValueError(f"lighting.ssrt_depth={ssrt_depth!r}: choose one of {SSRT_DEPTHS}")
+        if ssrt_depth == "every_pixel" and gbuffers != "predicted":
+            raise ValueError(
+                "lighting.ssrt_depth=every_pixel needs gbuffers=predicted (the ground truth has no depth there)"
+            )
+        self.ssrt_depth = ssrt_depth
 
     # ------------------------------------------------------------------ pieces
     def eval_generator(self) -> torch.Generator:
@@ -100,7 +112,8 @@ class LightingSystem(L.LightningModule):
 
     @torch.no_grad()
     def gbuffers(self, batch: dict) -> dict:
-        """depth (B, H, W) z-depth metres (0 where masked), albedo/normal (B, 3, H, W), material (B, 2, H, W)."""
+        """depth (B, H, W) z-depth metres (0 where masked, or only where none with ssrt_depth=every_pixel),
+        albedo/normal (B, 3, H, W), material (B, 2, H, W)."""
         if self.material is None:
             gb = {k: batch[k] for k in ("albedo", "normal", "material")}
             depth = batch["depth"][:, 0]
@@ -108,7 +121,10 @@ class LightingSystem(L.LightningModule):
             pred = self.material_maps(batch)
             gb = {k: pred[k] for k in ("albedo", "normal", "material")}
             depth = pred["depth"][:, 0] * self.depth_scale
-        gb["depth"] = torch.where(batch["mask"][:, 0], depth, torch.zeros_like(depth))
+        keep = batch["mask"][:, 0]
+        if self.ssrt_depth == "every_pixel":  # lamps and windows too: SSRT can hit what the camera sees
+            keep = torch.isfinite(depth) & (depth > 0)
+        gb["depth"] = torch.where(keep, depth, torch.zeros_like(depth))
         return gb
 
     @torch.no_grad()

@@ -250,3 +250,32 @@ def test_no_rays_give_no_radiance(mode):
     with torch.no_grad():
         L = net(net.encode(im, gbuffer["depth"], fov), gbuffer, fov, origin[:0], wi[:0], bidx[:0])["radiance"]
     assert L.shape == (0, 3)
+
+
+def test_exp_activation_reaches_lamp_radiance_and_keeps_densities_softplus():
+    """`activation: exp` maps the radiance heads through exp (clamped at EXP_MAX), so a texel 100x the image
+    mean is a pre-activation of log(100) = 4.6; the densities stay softplus, so the same raw output gives
+    the same transmittance as with softplus; huge pre-activations stay finite."""
+    from pipeline.models.light_net.branches import EXP_MAX, _activate
+
+    x = torch.tensor([-50.0, 0.0, math.log(100.0), 1e4])
+    torch.testing.assert_close(_activate(x, "exp"), torch.tensor([math.exp(-50.0), 1.0, 100.0, math.exp(EXP_MAX)]))
+    torch.manual_seed(0)
+    im, gbuffer, fov, origin, wi, bidx = _scene(B=1)
+    n = min(len(wi), 64)
+    origin, wi, bidx = origin[:n], wi[:n], torch.zeros(n, dtype=torch.long)
+    nets = {
+        a: LightNet(mode="out_of_view_only", out_of_view={"samples": 4, "activation": a}) for a in ("softplus", "exp")
+    }
+    nets["exp"].load_state_dict(nets["softplus"].state_dict())
+    seen = {}
+    for name, net in nets.items():
+        branch = net.out_of_view
+        real = branch._march
+        branch._march = lambda params, pts, edges, b, scale, real=real, name=name: seen.setdefault(
+            name, real(params, pts, edges, b, scale)
+        )
+        out = net(net.encode(im, gbuffer["depth"], fov), gbuffer, fov, origin, wi, bidx)
+        assert torch.isfinite(out["radiance"]).all() and (out["radiance"] >= 0).all()
+    torch.testing.assert_close(seen["exp"][1], seen["softplus"][1])  # transmittance left: the same densities
+    assert not torch.allclose(seen["exp"][0], seen["softplus"][0])  # radiance: another activation

@@ -33,7 +33,10 @@ from pipeline.ops.volume import composite, ray_box, ray_sphere, stratified_edges
 GBUFFER_DIM = 10  # Kd (3), Ks (3), normal (3), roughness (1)
 GBUFFER_GROUPS = (("kd", 3), ("ks", 3), ("normal", 3), ("roughness", 1))  # the split of those 10
 ENCODINGS = ("nerf", "rff")
-ACTIVATIONS = ("softplus", "relu")
+ACTIVATIONS = ("softplus", "relu", "exp")
+# exp: radiance = exp(x), x clamped at EXP_MAX (e^12: 1.6e5 image means), so a lamp 30-300x the image mean
+# is a pre-activation of 3.4-5.7 rather than 30-300 (HDR light spans decades); densities stay softplus
+EXP_MAX = 12.0
 BOUNDS = ("box", "sphere")
 # rays per chunk of either branch's query: the (rays [x samples] x width) activations stay a few MB and are
 # reused from cache instead of being freshly paged in for every operation (pipeline.bench.light_net)
@@ -82,6 +85,8 @@ class SkipMLP(nn.Module):
 
 
 def _activate(x: torch.Tensor, activation: str) -> torch.Tensor:
+    if activation == "exp":
+        return torch.exp(x.clamp(max=EXP_MAX))
     return F.softplus(x) if activation == "softplus" else F.relu(x)
 
 
@@ -96,6 +101,7 @@ class LocalBranch(nn.Module):
     saw that pixel's radiance leaving the hit towards it; for a diffuse hit it is exactly the radiance
     leaving towards any query point, so the network only learns the view-dependent correction, and a
     visible lamp or window keeps its full HDR value instead of being decoded from compressed features.
+    activation: of the radiance, softplus | relu | exp (see EXP_MAX).
 
     encoding: `nerf` (the direction NeRF-encoded with `frequencies`, G-buffers as they are) or `rff` (the
     released code: direction, normal, Kd, Ks and roughness each through its own random Fourier basis of
@@ -201,8 +207,9 @@ class LocalBranch(nn.Module):
 class OutOfViewBranch(nn.Module):
     """feature_dim: the global feature's width (null: the encoder's own pooled width, no projection, as
     released); hyper: HyperMLP structure (trunk, head_hidden, split_bias, param_activation); bounds, near,
-    sphere_radius, far_field: see the module docstring; activation: of density and radiance;
-    pi_encoding: positions encoded with sin(2^k pi x) (off: sin(2^k x), as released)."""
+    sphere_radius, far_field: see the module docstring; activation: of density and radiance (exp: of the
+    radiance and the far field, densities stay softplus); pi_encoding: positions encoded with
+    sin(2^k pi x) (off: sin(2^k x), as released)."""
 
     def __init__(
         self,
@@ -271,7 +278,8 @@ class OutOfViewBranch(nn.Module):
             parts.append(self._march(params, pts, edges[c], batch_index[c], None if spacing is None else spacing[c]))
         rad, left = parts[0] if len(parts) == 1 else (torch.cat(x) for x in zip(*parts, strict=True))
         if self.far is not None:
-            far = F.softplus(self.far(torch.cat([feature[batch_index], fourier(wi, self.dir_frequencies)], -1)))
+            raw = self.far(torch.cat([feature[batch_index], fourier(wi, self.dir_frequencies)], -1))
+            far = _activate(raw, "exp") if self.activation == "exp" else F.softplus(raw)
             rad = rad + left[:, None] * far
         return rad * scale[batch_index].unsqueeze(-1)
 
@@ -282,7 +290,9 @@ class OutOfViewBranch(nn.Module):
         S = pts.shape[1]
         encoded = fourier(pts.reshape(-1, 3), self.frequencies, pi=self.pi_encoding)
         out = HyperMLP.run_generated(params, encoded, batch_index.repeat_interleave(S))
-        out = _activate(out, self.activation).view(-1, S, 4)  # density and radiance share the activation
-        sigma = out[..., 0] if density_scale is None else out[..., 0] * density_scale[:, None]
-        rad, _, left = composite(sigma, out[..., 1:], edges)
+        out = out.view(-1, S, 4)
+        # density and radiance share the activation, but for exp, which is for radiance only
+        sigma = _activate(out[..., 0], "softplus" if self.activation == "exp" else self.activation)
+        sigma = sigma if density_scale is None else sigma * density_scale[:, None]
+        rad, _, left = composite(sigma, _activate(out[..., 1:], self.activation), edges)
         return rad, left

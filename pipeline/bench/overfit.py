@@ -1,0 +1,231 @@
+"""`python -m pipeline.bench.overfit`: can LightNet memorise its own training rooms?
+
+Before a network is tuned to generalise it must fit the few rooms it is trained on; if it cannot, what
+blocks it is in the model, the loss or the optimiser, not in the data. For each room count in `--rooms`
+(the first n views of the training split) and each variant (`--variant NAME:override;override`, Hydra
+overrides of `train_lighting`), this trains LightNet with the stage's training step on those rooms alone
+(ground-truth G-buffers, so MaterialNet's errors do not count; a constant learning rate, no validation)
+until the training loss plateaus: its mean over the last `--window` steps improved by less than
+`--min-gain` (relative) over the `--window` steps before (checked at evaluations; a negative value
+never stops), or `--max-steps`.
+
+Every `--eval-every` steps, on the same rooms at the evaluation's settings (every probe texel, stratified
+directions; re-render at the evaluation spp on the stride grid), it records per probe kind (surface,
+free): the pooled normalised MSE, its energy and placement parts and each ray class's share of it
+(`bench.light_energy`'s split), each class's predicted over true energy, and the re-render PSNR (dB).
+Writes reports/bench/overfit.json and a PNG of those curves against steps.
+"""
+
+from __future__ import annotations
+
+import argparse
+import time
+
+import torch
+from matplotlib.figure import Figure
+from tqdm import tqdm
+
+from pipeline.bench.common import add_threads_option, apply_threads, publish
+from pipeline.bench.light_energy import RAY_CLASSES, tally_batches
+
+KINDS = ("surf", "free")
+
+
+def parse_variant(text: str) -> tuple[str, list[str]]:
+    """'name:a=1;b=2' -> ('name', ['a=1', 'b=2']); 'name' alone: no overrides."""
+    name, _, rest = text.partition(":")
+    if not name:
+        raise ValueError(f"--variant {text!r}: give a name before ':'")
+    return name, [o for o in rest.split(";") if o.strip()]
+
+
+def build(overrides: list[str], seed: int):
+    """The `train_lighting` LightingSystem (ground-truth G-buffers) and its optimiser under `overrides`."""
+    from hydra.utils import instantiate
+
+    from pipeline.runs.ablate import compose
+    from pipeline.runs.train_lighting import build_system
+
+    torch.manual_seed(seed)
+    cfg = compose("train_lighting", ["gbuffers=ground_truth", f"seed={seed}", *overrides])
+    system = build_system(cfg)
+    system.log = lambda *args, **kwargs: None  # outside Lightning: the step's logging goes nowhere
+    optimizer = instantiate(cfg.optim.optimizer)(system.net.parameters())
+    return system, optimizer, cfg
+
+
+def rooms_batches(data_dir: str, rooms: int, batch_size: int):
+    """The first `rooms` training views as a shuffling loader (seeded) and as plain batches."""
+    from torch.utils.data import DataLoader, Subset
+
+    from pipeline.data.datasets import ShardDataset, collate_views
+
+    train = ShardDataset(data_dir, "train", lighting=True)
+    if rooms > len(train):
+        raise ValueError(f"--rooms {rooms}: the training split of {data_dir} has {len(train)} views")
+    subset = Subset(train, range(rooms))
+    bs = min(batch_size, rooms)
+    loader = DataLoader(
+        subset, bs, shuffle=True, generator=torch.Generator().manual_seed(0), collate_fn=collate_views, drop_last=True
+    )
+    plain = list(DataLoader(subset, 4, shuffle=False, collate_fn=collate_views))
+    return loader, plain
+
+
+@torch.no_grad()
+def evaluate(system, plain) -> dict:
+    """Light-error split per kind and the mean re-render PSNR (dB) over the rooms."""
+    system.eval()
+    out = {}
+    for kind, t in tally_batches(system, plain).items():
+        if not t.sums:
+            continue
+        s = t.summary()
+        out[kind] = {
+            "nmse": s["nmse"]["lightnet"],
+            "oracle_nmse": s["nmse"]["probe_mean_oracle"],
+            "energy_part": s["lightnet_energy_part"],
+            "placement_part": s["lightnet_placement_part"],
+            "classes": {
+                c: {
+                    "nmse_contribution": s["classes"][c]["nmse_contribution"],
+                    "predicted_over_true_energy": s["classes"][c]["predicted_over_true_energy"],
+                    "ray_fraction": s["classes"][c]["ray_fraction"],
+                }
+                for c in RAY_CLASSES
+            },
+        }
+    psnr = [system.evaluate_batch(b)["render_psnr"] for b in plain]
+    out["render_psnr"] = sum(psnr) / len(psnr)
+    system.train()
+    return out
+
+
+def plateaued(losses: list[float], window: int, min_gain: float) -> bool:
+    """Whether the mean loss of the last `window` steps is less than `min_gain` (relative) below the mean
+    of the `window` steps before (False until there are 2 windows; a negative min_gain never stops)."""
+    if len(losses) < 2 * window or min_gain < 0:
+        return False
+    recent = sum(losses[-window:]) / window
+    before = sum(losses[-2 * window : -window]) / window
+    return before - recent < min_gain * abs(before)
+
+
+def train_to_plateau(system, optimizer, loader, plain, max_steps, eval_every, window, min_gain, label) -> dict:
+    losses, curve = [], []
+    step, t0, stop = 0, time.perf_counter(), "max_steps"
+    system.train()
+    bar = tqdm(total=max_steps, desc=label)
+    while step < max_steps:
+        for batch in loader:
+            if step % eval_every == 0:
+                curve.append({"step": step, "seconds": time.perf_counter() - t0, **evaluate(system, plain)})
+            loss = system.training_step(batch, step)
+            optimizer.zero_grad(set_to_none=True)
+            loss.backward()
+            optimizer.step()
+            losses.append(float(loss.detach()))
+            step += 1
+            bar.update(1)
+            if step % eval_every == 0 and plateaued(losses, window, min_gain):
+                stop = "plateau"
+                break
+            if step >= max_steps:
+                break
+        if stop == "plateau":
+            break
+    bar.close()
+    curve.append({"step": step, "seconds": time.perf_counter() - t0, **evaluate(system, plain)})
+    return {"steps": step, "stopped_by": stop, "seconds": time.perf_counter() - t0, "loss": losses, "curve": curve}
+
+
+def run(
+    rooms=(1, 8, 64),
+    variants=(("default", []),),
+    data_dir="outputs/preprocess",
+    max_steps=600,
+    eval_every=50,
+    window=50,
+    min_gain=0.02,
+    seed=0,
+) -> dict:
+    report = {
+        "rooms": list(rooms),
+        "max_steps": max_steps,
+        "eval_every": eval_every,
+        "window": window,
+        "min_gain": min_gain,
+        "seed": seed,
+        "gbuffers": "ground_truth",
+        "runs": [],
+    }
+    for name, overrides in variants:
+        for n in rooms:
+            system, optimizer, cfg = build(overrides, seed)
+            loader, plain = rooms_batches(data_dir, n, int(cfg.batch_size))
+            row = train_to_plateau(
+                system, optimizer, loader, plain, max_steps, eval_every, window, min_gain, f"{name}, {n} rooms"
+            )
+            report["runs"].append({"variant": name, "overrides": overrides, "rooms": n, **row})
+    return report
+
+
+def plot(report: dict, path) -> None:
+    """Per run (variant x rooms), against training steps: surface and free nMSE, their energy parts, the
+    miss class's share, and the re-render PSNR (dB)."""
+    panels = [
+        ("surface probes: nMSE", lambda c: c["surf"]["nmse"]),
+        ("surface: energy part", lambda c: c["surf"]["energy_part"]),
+        ("free points: nMSE", lambda c: c.get("free", {}).get("nmse", float("nan"))),
+        (
+            "surface: predicted/true energy on misses",
+            lambda c: c["surf"]["classes"]["miss"]["predicted_over_true_energy"] or float("nan"),
+        ),
+        ("re-render PSNR on GT G-buffers (dB)", lambda c: c["render_psnr"]),
+        ("training loss", None),
+    ]
+    fig = Figure(figsize=(13, 7.5))
+    axes = fig.subplots(2, 3).ravel()
+    for ax, (title, get) in zip(axes, panels, strict=True):
+        for r in report["runs"]:
+            label = f"{r['variant']}, {r['rooms']} rooms"
+            if get is None:
+                loss = torch.tensor(r["loss"])
+                k = max(1, min(25, len(loss) // 4))
+                smooth = torch.nn.functional.avg_pool1d(loss[None, None], k, 1)[0, 0] if len(loss) >= k else loss
+                ax.plot(range(k - 1, k - 1 + len(smooth)), smooth.tolist(), label=label)
+                ax.set_yscale("log")
+            else:
+                ax.plot([c["step"] for c in r["curve"]], [get(c) for c in r["curve"]], marker=".", label=label)
+        ax.set_title(title, fontsize=9)
+        ax.set_xlabel("training step")
+    axes[0].axhline(0.3, color="k", lw=0.6, ls="--")
+    axes[1].axhline(0.01, color="k", lw=0.6, ls="--")
+    axes[3].axhline(1.0, color="k", lw=0.6, ls="--")
+    axes[0].legend(fontsize=6)
+    fig.suptitle("LightNet memorising its training rooms (evaluated on those rooms; dashed: targets)", fontsize=10)
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+
+
+def main(argv=None) -> None:
+    p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("--rooms", type=int, nargs="+", default=[1, 8, 64])
+    p.add_argument("--variant", action="append", default=None, help="NAME:override;override (repeatable)")
+    p.add_argument("--data-dir", default="outputs/preprocess")
+    p.add_argument("--max-steps", type=int, default=600)
+    p.add_argument("--eval-every", type=int, default=50)
+    p.add_argument("--window", type=int, default=50)
+    p.add_argument("--min-gain", type=float, default=0.02)
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--name", default="overfit", help="the JSON/PNG name under reports/bench")
+    add_threads_option(p)
+    a = p.parse_args(argv)
+    apply_threads(a.threads)
+    variants = [parse_variant(v) for v in (a.variant or ["default"])]
+    report = run(a.rooms, variants, a.data_dir, a.max_steps, a.eval_every, a.window, a.min_gain, a.seed)
+    print(publish(a.name, report, plot))
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,68 @@
+"""The training benches (`bench.overfit`, `bench.train_step`) run end to end on the micro data, and their
+rules (plateau, variants) do what they say."""
+
+import math
+
+import pytest
+
+from pipeline.bench import overfit, train_step
+
+
+def test_plateau_rule():
+    falling = [1.0 / (1 + i) for i in range(40)]
+    assert not overfit.plateaued(falling[:19], 10, 0.02)  # fewer than two windows
+    assert not overfit.plateaued(falling[:20], 10, 0.02)  # the last 10 steps fell by far more than 2 %
+    flat = [1.0, 0.5] * 20  # noisy but no progress
+    assert overfit.plateaued(flat, 10, 0.02)
+    assert not overfit.plateaued(flat, 10, -1.0)  # a negative gain never stops
+    rising = [float(i) for i in range(1, 41)]
+    assert overfit.plateaued(rising, 10, 0.0)
+
+
+def test_variant_parsing():
+    assert overfit.parse_variant("base") == ("base", [])
+    assert overfit.parse_variant("fast:optim.optimizer.lr=3e-3;lighting.probes=4") == (
+        "fast",
+        ["optim.optimizer.lr=3e-3", "lighting.probes=4"],
+    )
+    with pytest.raises(ValueError, match="name"):
+        overfit.parse_variant(":a=1")
+
+
+def test_overfit_bench_runs_small(micro_shards, tmp_path):
+    report = overfit.run(rooms=(2,), data_dir=str(micro_shards), max_steps=3, eval_every=2, window=1, min_gain=-1)
+    (run,) = report["runs"]
+    assert run["steps"] == 3 and run["stopped_by"] == "max_steps" and len(run["loss"]) == 3
+    assert [c["step"] for c in run["curve"]] == [0, 2, 3]
+    for c in run["curve"]:
+        assert math.isfinite(c["render_psnr"])
+        for kind in ("surf", "free"):
+            if kind in c:
+                k = c[kind]
+                assert k["energy_part"] + k["placement_part"] == pytest.approx(k["nmse"])
+                assert sum(v["ray_fraction"] for v in k["classes"].values()) == pytest.approx(1.0)
+    with pytest.raises(ValueError, match="training split"):
+        overfit.run(rooms=(10_000,), data_dir=str(micro_shards), max_steps=1)
+    overfit.plot(report, tmp_path / "o.png")
+    assert (tmp_path / "o.png").stat().st_size > 5_000
+
+
+def test_train_step_bench_runs_small(micro_shards, micro_exports, tmp_path, monkeypatch):
+    # the compiled SSRT setting compiles for tens of seconds: the smoke test times the eager ones
+    monkeypatch.setattr(train_step, "SETTINGS", train_step.SETTINGS[:3])
+    report = train_step.run(
+        batches=1,
+        rounds=1,
+        steps=2,
+        test_views=2,
+        data_dir=str(micro_shards),
+        overrides=[f"material_path={micro_exports / 'material.pt'}", "profile=micro"],
+    )
+    rows = report["settings"]
+    assert [r["setting"] for r in rows] == [name for name, _ in train_step.SETTINGS[:3]]
+    assert rows[0]["speedup"] == 1.0 and all(r["median_step_s"] > 0 for r in rows)
+    assert set(report["profile_top_operations"]) == {rows[0]["setting"], rows[-1]["setting"]}
+    scores = report["paired"]["scores"]
+    assert "render_psnr" in scores and all(math.isfinite(v["diff"]) for v in scores.values())
+    train_step.plot(report, tmp_path / "t.png")
+    assert (tmp_path / "t.png").stat().st_size > 5_000
