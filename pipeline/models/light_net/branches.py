@@ -6,11 +6,12 @@ radiance leaving the hit towards the query point.
 
 Out-of-view branch: a second CNN gives one global feature per image; a hypernetwork turns it into the
 weights of a small NeRF MLP (encoded position -> density, radiance), volume-rendered along p + t wi
-inside the scene's bounds: `box` (this project: the depth map's bounding box, positions mapped to
+inside the scene's bounds: `box` (an option: the depth map's bounding box, positions mapped to
 [-1, 1]^3, density scaled to O(1) optical depth; light that leaves the box unabsorbed takes a
-direction-only "far field" radiance, windows and sky, when `far_field` is on) or `sphere` (the released
-code: positions in units of the view's maximum depth, a camera-centred sphere of radius
-`sphere_radius` from `near`, raw density, nothing behind the sphere).
+direction-only "far field" radiance, windows and sky, when `far_field` is on; the room behind the camera
+lies outside it) or `sphere` (both profiles, as in the released code: positions in units of the view's
+maximum depth, a camera-centred sphere of radius `sphere_radius` from `near`, raw density; behind the
+sphere the far field when `far_field` is on, else nothing).
 
 Options reproduce the released layers for `model/light_net=paper` (docs/method.md): the local MLP's
 `skips` and random Fourier features (`encoding=rff`), ReLU outputs, and the hypernetwork's structure.
