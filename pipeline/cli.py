@@ -454,6 +454,23 @@ def _whdr(args) -> int:
     return 0
 
 
+def _import_released(args) -> int:
+    """`invrender import-released {mgnet,lightnet} FILE --out FILE.pt`: the authors' released weights as an
+    invrender export under the `paper` profile (pipeline.models.released)."""
+    from pipeline.models import released
+
+    if args.network == "mgnet":
+        summary = released.import_mgnet(args.checkpoint, args.out, depth_scale=args.depth_scale)
+    else:
+        summary = released.import_lightnet(args.checkpoint, args.out)
+    print(f"{summary['out']}: {summary['imported']} tensors imported")
+    for prefix, count in summary["skipped"].items():
+        print(f"skipped (unused at inference) {prefix}: {count}")
+    for line in summary.get("notes", []):
+        print(line)
+    return 0
+
+
 class _Parser(argparse.ArgumentParser):
     """argparse with its usage errors on one line (`error: invrender insert: argument --at: ...`), exit 2."""
 
@@ -521,6 +538,20 @@ def main(argv: list[str] | None = None) -> int:
     m.add_argument("--material-net", default=DEFAULT_MATERIAL, help="MaterialNet export (default: %(default)s)")
     m.add_argument("--light-net", default=DEFAULT_LIGHT, help="LightNet export (default: %(default)s)")
     m.set_defaults(func=_envmap)
+    r = sub.add_parser(
+        "import-released",
+        help="the authors' released MGNet checkpoint or LightNet weights as an invrender export (paper profile)",
+    )
+    r.add_argument("network", choices=("mgnet", "lightnet"))
+    r.add_argument("checkpoint", help="released file: MGNet Lightning .ckpt, LightNet .pth (read weights-only)")
+    r.add_argument("--out", required=True, help="the export to write, e.g. released_mgnet.pt")
+    r.add_argument(
+        "--depth-scale",
+        type=float,
+        default=1.0,
+        help="mgnet: metres per unit of the released relative depth (1: the farthest depth; default %(default)s)",
+    )
+    r.set_defaults(func=_import_released)
     args = parser.parse_args(argv)
     from pipeline.data.formats.photo import PhotoError
     from pipeline.data.iiw import IIWError
