@@ -1,13 +1,13 @@
 """`python -m pipeline.bench.compare_runs`: two runs of the pipeline on the same test views, paired.
 
-Given the `edit` stage's cases.csv of a run before and after a change (`--cases OLD NEW`) and, optionally,
-the `train_lighting` stage's test_views.csv of both (`--views OLD NEW`), it pairs each case (view, case)
-or view (id) across the two runs and reports, per group, the mean before and after and the mean
-difference (after minus before) with its 95 % bootstrap interval, whole views resampled
+Given the `edit` stage's cases.csv of a run before and after a change (`--cases OLD NEW`) and,
+optionally, the `train_lighting` stage's test_views.csv of both (`--views OLD NEW`), it pairs each case
+(view, case) or view (id) across the two runs and reports, per group, the mean before and after and the
+mean difference (after minus before) with its 95 % bootstrap interval, whole views resampled
 (`metrics.bootstrap.paired_bootstrap`): insertion PSNR per object material and over all objects, edit
 PSNR per edit, and the LightNet test metrics (re-render PSNR, light nMSE, log-L1). A difference whose
-interval holds 0 is reported as none (a group from one view has no interval). Cases or views present in one run only are refused by name: the
-two runs must have scored the same views.
+interval holds 0 is reported as none (a group from one view has no interval). Cases or views present in
+one run only are refused by name: the two runs must have scored the same views.
 
 Writes `--out` (JSON) and prints a table.
 """
