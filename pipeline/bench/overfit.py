@@ -13,7 +13,10 @@ Every `--eval-every` steps, on the same rooms at the evaluation's settings (ever
 directions; re-render at the evaluation spp on the stride grid), it records per probe kind (surface,
 free): the pooled normalised MSE, its energy and placement parts and each ray class's share of it
 (`bench.light_energy`'s split), each class's predicted over true energy, and the re-render PSNR (dB).
-Writes reports/bench/overfit.json and a PNG of those curves against steps.
+With `--network material` the same for MaterialNet (`train_material`'s step and schedule-free optimiser on
+the rooms alone): every map's error on those rooms over the error of the rooms' own mean (the mean
+baselines of the metallic gate, fitted on the same rooms), metallic first.
+Writes reports/bench/overfit.json (or `--name`) and a PNG of those curves against steps.
 """
 
 from __future__ import annotations
@@ -29,6 +32,7 @@ from pipeline.bench.common import add_threads_option, apply_threads, publish
 from pipeline.bench.light_energy import RAY_CLASSES, tally_batches
 
 KINDS = ("surf", "free")
+NETWORKS = ("light", "material")
 
 
 def parse_variant(text: str) -> tuple[str, list[str]]:
@@ -54,13 +58,57 @@ def build(overrides: list[str], seed: int):
     return system, optimizer, cfg
 
 
-def rooms_batches(data_dir: str, rooms: int, batch_size: int):
+def build_material(overrides: list[str], seed: int):
+    """The `train_material` MaterialSystem and its optimiser under `overrides`."""
+    from hydra.utils import instantiate
+
+    from pipeline.runs.ablate import compose
+    from pipeline.runs.train_material import build_system
+
+    torch.manual_seed(seed)
+    cfg = compose("train_material", [f"seed={seed}", *overrides])
+    system = build_system(cfg)
+    system.log = lambda *args, **kwargs: None
+    return system, instantiate(cfg.optim.optimizer)(system.net.parameters()), cfg
+
+
+MATERIAL_MAPS = ("metallic_mse", "roughness_mse", "albedo_mse")  # each against mean_material / mean_albedo
+
+
+@torch.no_grad()
+def evaluate_material(system, plain) -> dict:
+    """Each map's mean error over the rooms and over the rooms' own mean baseline (their ratio)."""
+    from pipeline.metrics.synthetic import material_metrics
+    from pipeline.systems.material_baselines import MaterialBaselines
+
+    system.eval()
+    baselines = MaterialBaselines.fit(plain)
+    sums: dict[str, float] = {}
+    for batch in plain:
+        per = material_metrics(system.net(batch["im"]), batch)
+        per.update(baselines.metrics(batch))
+        for k, v in per.items():
+            v = v[torch.isfinite(v)]
+            sums[k] = sums.get(k, 0.0) + float(v.sum())
+    system.train()
+    out = {}
+    for metric in MATERIAL_MAPS:
+        base = "mean_albedo" if metric == "albedo_mse" else "mean_material"
+        out[metric] = {
+            "model": sums[metric],
+            "mean_baseline": sums[f"{base}/{metric}"],
+            "ratio": sums[metric] / max(sums[f"{base}/{metric}"], 1e-12),
+        }
+    return out
+
+
+def rooms_batches(data_dir: str, rooms: int, batch_size: int, lighting: bool = True):
     """The first `rooms` training views as a shuffling loader (seeded) and as plain batches."""
     from torch.utils.data import DataLoader, Subset
 
     from pipeline.data.datasets import ShardDataset, collate_views
 
-    train = ShardDataset(data_dir, "train", lighting=True)
+    train = ShardDataset(data_dir, "train", lighting=lighting)
     if rooms > len(train):
         raise ValueError(f"--rooms {rooms}: the training split of {data_dir} has {len(train)} views")
     subset = Subset(train, range(rooms))
@@ -111,7 +159,9 @@ def plateaued(losses: list[float], window: int, min_gain: float) -> bool:
     return before - recent < min_gain * abs(before)
 
 
-def train_to_plateau(system, optimizer, loader, plain, max_steps, eval_every, window, min_gain, label) -> dict:
+def train_to_plateau(
+    system, optimizer, loader, plain, max_steps, eval_every, window, min_gain, label, score=evaluate
+) -> dict:
     losses, curve = [], []
     step, t0, stop = 0, time.perf_counter(), "max_steps"
     system.train()
@@ -119,7 +169,7 @@ def train_to_plateau(system, optimizer, loader, plain, max_steps, eval_every, wi
     while step < max_steps:
         for batch in loader:
             if step % eval_every == 0:
-                curve.append({"step": step, "seconds": time.perf_counter() - t0, **evaluate(system, plain)})
+                curve.append({"step": step, "seconds": time.perf_counter() - t0, **score(system, plain)})
             loss = system.training_step(batch, step)
             optimizer.zero_grad(set_to_none=True)
             loss.backward()
@@ -135,7 +185,7 @@ def train_to_plateau(system, optimizer, loader, plain, max_steps, eval_every, wi
         if stop == "plateau":
             break
     bar.close()
-    curve.append({"step": step, "seconds": time.perf_counter() - t0, **evaluate(system, plain)})
+    curve.append({"step": step, "seconds": time.perf_counter() - t0, **score(system, plain)})
     return {"steps": step, "stopped_by": stop, "seconds": time.perf_counter() - t0, "loss": losses, "curve": curve}
 
 
@@ -148,23 +198,34 @@ def run(
     window=50,
     min_gain=0.02,
     seed=0,
+    network: str = "light",
 ) -> dict:
+    if network not in NETWORKS:
+        raise ValueError(f"--network {network!r}: choose one of {NETWORKS}")
     report = {
+        "network": network,
         "rooms": list(rooms),
         "max_steps": max_steps,
         "eval_every": eval_every,
         "window": window,
         "min_gain": min_gain,
         "seed": seed,
-        "gbuffers": "ground_truth",
         "runs": [],
     }
+    if network == "light":
+        report["gbuffers"] = "ground_truth"
     for name, overrides in variants:
         for n in rooms:
-            system, optimizer, cfg = build(overrides, seed)
-            loader, plain = rooms_batches(data_dir, n, int(cfg.batch_size))
+            if network == "light":
+                system, optimizer, cfg = build(overrides, seed)
+                loader, plain = rooms_batches(data_dir, n, int(cfg.batch_size))
+                score = evaluate
+            else:
+                system, optimizer, cfg = build_material(overrides, seed)
+                loader, plain = rooms_batches(data_dir, n, int(cfg.batch_size), lighting=False)
+                score = evaluate_material
             row = train_to_plateau(
-                system, optimizer, loader, plain, max_steps, eval_every, window, min_gain, f"{name}, {n} rooms"
+                system, optimizer, loader, plain, max_steps, eval_every, window, min_gain, f"{name}, {n} rooms", score
             )
             report["runs"].append({"variant": name, "overrides": overrides, "rooms": n, **row})
     return report
@@ -172,7 +233,10 @@ def run(
 
 def plot(report: dict, path) -> None:
     """Per run (variant x rooms), against training steps: surface and free nMSE, their energy parts, the
-    miss class's share, and the re-render PSNR (dB)."""
+    miss class's share, and the re-render PSNR (dB); for MaterialNet each map's error over its mean
+    baseline's."""
+    if report.get("network") == "material":
+        return plot_material(report, path)
     panels = [
         ("surface probes: nMSE", lambda c: c["surf"]["nmse"]),
         ("surface: energy part", lambda c: c["surf"]["energy_part"]),
@@ -208,8 +272,35 @@ def plot(report: dict, path) -> None:
     fig.savefig(path, dpi=110)
 
 
+def plot_material(report: dict, path) -> None:
+    fig = Figure(figsize=(13, 3.8))
+    axes = fig.subplots(1, len(MATERIAL_MAPS) + 1)
+    for ax, metric in zip(axes, MATERIAL_MAPS, strict=False):
+        for r in report["runs"]:
+            ax.plot(
+                [c["step"] for c in r["curve"]],
+                [c[metric]["ratio"] for c in r["curve"]],
+                marker=".",
+                label=f"{r['variant']}, {r['rooms']} rooms",
+            )
+        ax.axhline(0.2 if metric == "metallic_mse" else 1.0, color="k", lw=0.6, ls="--")
+        ax.set_title(f"{metric}: model / the rooms' mean", fontsize=9)
+        ax.set_xlabel("training step")
+    ax = axes[-1]
+    for r in report["runs"]:
+        ax.plot(r["loss"], lw=0.5)
+    ax.set_yscale("log")
+    ax.set_title("training loss", fontsize=9)
+    ax.set_xlabel("training step")
+    axes[0].legend(fontsize=6)
+    fig.suptitle("MaterialNet memorising its training rooms (dashed: metallic target 0.2, else the mean)", fontsize=10)
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+
+
 def main(argv=None) -> None:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("--network", default="light", choices=NETWORKS)
     p.add_argument("--rooms", type=int, nargs="+", default=[1, 8, 64])
     p.add_argument("--variant", action="append", default=None, help="NAME:override;override (repeatable)")
     p.add_argument("--data-dir", default="outputs/preprocess")
@@ -223,7 +314,7 @@ def main(argv=None) -> None:
     a = p.parse_args(argv)
     apply_threads(a.threads)
     variants = [parse_variant(v) for v in (a.variant or ["default"])]
-    report = run(a.rooms, variants, a.data_dir, a.max_steps, a.eval_every, a.window, a.min_gain, a.seed)
+    report = run(a.rooms, variants, a.data_dir, a.max_steps, a.eval_every, a.window, a.min_gain, a.seed, a.network)
     print(publish(a.name, report, plot))
 
 

@@ -317,6 +317,8 @@ def bench_block(name: str, data: dict) -> list[str]:
     head = data.get("measured", data.get("summary"))
     if head is None and name == "light_energy":
         head = {f"nMSE ({kind})": v.get("nmse", {}) for kind, v in data.get("kinds", {}).items()}
+    elif head is None and name.startswith("overfit"):
+        head = {"each run's last evaluation, on its training rooms": [overfit_row(r) for r in data.get("runs", [])]}
     elif head is None:
         head = {k: v for k, v in data.items() if k in BENCH_HEADLINES.get(name, ())}
     scalars = [[k, num(v)] for k, v in head.items() if isinstance(v, int | float) and not isinstance(v, bool)]
@@ -343,8 +345,25 @@ def bench_block(name: str, data: dict) -> list[str]:
     return lines + [""]
 
 
+def overfit_row(run: dict) -> dict:
+    """`bench.overfit`: one run's variant, rooms, steps and its last evaluation's headline numbers."""
+    last = (run.get("curve") or [{}])[-1]
+    row = {"variant": run.get("variant"), "rooms": run.get("rooms"), "steps": run.get("steps")}
+    for kind in ("surf", "free"):
+        if isinstance(last.get(kind), dict):
+            row[f"{kind} nMSE"] = last[kind].get("nmse")
+            row[f"{kind} energy part"] = last[kind].get("energy_part")
+    if "render_psnr" in last:
+        row["re-render PSNR (dB)"] = last["render_psnr"]
+    for metric in ("metallic_mse", "roughness_mse", "albedo_mse"):
+        if isinstance(last.get(metric), dict):
+            row[f"{metric} / mean"] = last[metric].get("ratio")
+    return row
+
+
 # which top-level keys are a bench's headline when its JSON has neither `measured` nor `summary`
 BENCH_HEADLINES = {
+    "train_step": ("settings",),
     "insertion": ("speed",),
     "light_net": ("speed", "hyper_apply"),
     "material_net": ("results",),

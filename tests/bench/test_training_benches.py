@@ -66,3 +66,27 @@ def test_train_step_bench_runs_small(micro_shards, micro_exports, tmp_path, monk
     assert "render_psnr" in scores and all(math.isfinite(v["diff"]) for v in scores.values())
     train_step.plot(report, tmp_path / "t.png")
     assert (tmp_path / "t.png").stat().st_size > 5_000
+
+
+def test_overfit_bench_runs_materialnet_small(micro_shards, tmp_path):
+    report = overfit.run(
+        rooms=(2,),
+        data_dir=str(micro_shards),
+        max_steps=2,
+        eval_every=1,
+        window=1,
+        min_gain=-1,
+        network="material",
+        variants=(("micro", ["profile=micro"]),),
+    )
+    (run,) = report["runs"]
+    assert report["network"] == "material" and run["steps"] == 2
+    for c in run["curve"]:
+        for metric in overfit.MATERIAL_MAPS:
+            m = c[metric]
+            assert m["ratio"] == pytest.approx(m["model"] / max(m["mean_baseline"], 1e-12))
+            assert math.isfinite(m["model"]) and m["mean_baseline"] >= 0
+    overfit.plot(report, tmp_path / "m.png")
+    assert (tmp_path / "m.png").stat().st_size > 5_000
+    with pytest.raises(ValueError, match="--network"):
+        overfit.run(rooms=(2,), data_dir=str(micro_shards), network="both")
