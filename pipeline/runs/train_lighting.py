@@ -56,6 +56,25 @@ def build_system(cfg: DictConfig) -> LightingSystem:
     )
 
 
+def initialise_from_export(system: LightingSystem, path) -> list[str]:
+    """Load a LightNet export's weights (`models.export`, e.g. `invrender import-released lightnet`) into
+    the system's network before training (`init_light_path`). The export's LightNet options must be the
+    configured ones: every differing option is named and nothing is loaded. Returns the options checked."""
+    from pipeline.models.export import LIGHT_FORMAT, ExportError, read_export
+
+    blob = read_export(path, LIGHT_FORMAT)
+    want = system.hparams["light_net"]
+    differ = sorted(k for k in set(want) | set(blob["light_net"]) if want.get(k) != blob["light_net"].get(k))
+    if differ:
+        detail = "; ".join(f"{k}: export {blob['light_net'].get(k)!r}, config {want.get(k)!r}" for k in differ)
+        raise ExportError(f"{path}: its LightNet options differ from model.light_net ({detail})")
+    try:
+        system.net.load_state_dict(blob["state_dict"])
+    except RuntimeError as exc:
+        raise ExportError(f"{path}: incompatible with the configured LightNet ({exc})") from exc
+    return sorted(want)
+
+
 @torch.no_grad()
 def test_scores(system: LightingSystem, loader, views: list[dict] | None = None) -> dict[str, float]:
     """`evaluate_batch` over `loader`'s batches, each metric the mean weighted by batch size as Lightning
@@ -114,6 +133,8 @@ def run(cfg: DictConfig) -> dict[str, float]:
         raise ValueError(f"test_weights={cfg.test_weights!r}: choose one of {TEST_WEIGHTS}")
     L.seed_everything(int(cfg.seed), workers=True, verbose=False)
     system = build_system(cfg)
+    if cfg.get("init_light_path"):  # start from an export's weights instead of the seeded initialisation
+        initialise_from_export(system, cfg.init_light_path)
     dm = InteriorVerseDataModule(cfg.data_dir, batch_size=int(cfg.batch_size), seed=int(cfg.seed), lighting=True)
     dm.setup("fit")
     dm.setup("test")

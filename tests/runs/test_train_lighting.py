@@ -223,3 +223,23 @@ def test_unknown_test_weights_are_refused_by_name(micro_shards, tmp_path):
 
     with pytest.raises(ValueError, match="test_weights='newest'"):
         train_lighting.run(_cfg(micro_shards, tmp_path, "test_weights=newest"))
+
+
+def test_init_light_path_loads_an_exports_weights_or_names_what_differs(micro_shards, micro_exports, tmp_path):
+    from pipeline.models.export import ExportError, save_light_export
+    from pipeline.models.light_net import LightNet
+    from pipeline.runs.train_lighting import build_system, initialise_from_export
+
+    system = build_system(_cfg(micro_shards, tmp_path))
+    export = micro_exports / "light.pt"
+    checked = initialise_from_export(system, export)
+    assert "out_of_view" in checked
+    blob = torch.load(export, weights_only=True)
+    for k, v in system.net.state_dict().items():
+        assert torch.equal(v, blob["state_dict"][k]), k
+    other = dict(blob["light_net"], k=3.0)
+    save_light_export(tmp_path / "other.pt", other, LightNet(**other))
+    with pytest.raises(ExportError, match=r"other.pt.*k: export 3.0, config 10.0"):
+        initialise_from_export(build_system(_cfg(micro_shards, tmp_path)), tmp_path / "other.pt")
+    with pytest.raises(ExportError, match="missing.pt"):
+        initialise_from_export(system, tmp_path / "missing.pt")
