@@ -102,6 +102,8 @@ def _photo_cmds(photo: str, good: dict, out: Path) -> dict[str, list[str]]:
         ],
         "edit": ["edit", photo, "--mask", mask, "--metallic", "1", "--out", str(out / "x.png"), "--material-net", m]
         + ["--light-net", li],
+        "envmap": ["envmap", photo, "--at", "20,20", "--out", str(out / "x.exr"), "--width", "8", "--material-net", m]
+        + ["--light-net", li],
     }
 
 
@@ -165,7 +167,7 @@ def test_corrupt_photos_are_refused(good, tmp_path_factory, capsys, suffix):
         shutil.rmtree(out)
 
     check()
-    for name in ("predict", "insert", "edit"):
+    for name in ("predict", "insert", "edit", "envmap"):
         for how in ("empty", "truncate"):
             assert refused[name, how], f"{name}: no {how} {suffix} photo was tried"
 
