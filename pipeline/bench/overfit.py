@@ -284,7 +284,8 @@ def plot_material(report: dict, path) -> None:
                 label=f"{r['variant']}, {r['rooms']} rooms",
             )
         ax.axhline(0.2 if metric == "metallic_mse" else 1.0, color="k", lw=0.6, ls="--")
-        ax.set_title(f"{metric}: model / the rooms' mean", fontsize=9)
+        ax.set_yscale("log")
+        ax.set_title(f"{metric}: model / the rooms' mean (log)", fontsize=9)
         ax.set_xlabel("training step")
     ax = axes[-1]
     for r in report["runs"]:
