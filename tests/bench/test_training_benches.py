@@ -90,3 +90,33 @@ def test_overfit_bench_runs_materialnet_small(micro_shards, tmp_path):
     assert (tmp_path / "m.png").stat().st_size > 5_000
     with pytest.raises(ValueError, match="--network"):
         overfit.run(rooms=(2,), data_dir=str(micro_shards), network="both")
+
+
+def test_learning_curve_bench_runs_small(micro_root, micro_shards, micro_exports, tmp_path):
+    """Two budgets on the micro rooms: each run trained and scored on the test split, insertion paired
+    with the reference run (itself: exactly 0), the baselines scored once, and the figure drawn."""
+    from pipeline.bench import learning_curve
+
+    report = learning_curve.run(
+        rooms=(2,),
+        steps=2,
+        budgets=(1,),
+        seed=0,
+        data_dir=str(micro_shards),
+        resamples=50,
+        overrides=["profile=micro", f"material_path={micro_exports / 'material.pt'}"],
+        edit_overrides=["profile=micro", f"data_root={micro_root}", f"data_dir={micro_shards}"],
+    )
+    runs = {(r["rooms"], r["steps"]): r for r in report["runs"]}
+    assert set(runs) == {(2, 1), (2, 2)} and report["reference"] == {"rooms": 2, "steps": 2}
+    ref, short = runs[(2, 2)], runs[(2, 1)]
+    assert ref["insertion"]["all"]["minus_reference"] == 0.0 and ref["insertion"]["all"]["cases"] >= 1
+    assert "insertion/all/scaled_constant" in ref and "insertion/all/scaled_constant" not in short
+    gap = short["insertion"]["all"]["psnr"] - ref["insertion"]["all"]["psnr"]
+    assert short["insertion"]["all"]["minus_reference"] == pytest.approx(gap, abs=1e-9)
+    for r in report["runs"]:
+        assert all(math.isfinite(r[k]) for k in ("render_psnr", "surf_light_nmse", "train_minutes"))
+    with pytest.raises(ValueError, match="--rooms 10000"):
+        learning_curve.first_rooms_loader(str(micro_shards), 10_000, 2, 0)
+    learning_curve.plot(report, tmp_path / "lc.png")
+    assert (tmp_path / "lc.png").stat().st_size > 10_000
