@@ -124,18 +124,38 @@ def micro_root(micro_stage_paths) -> Path:
     return micro_stage_paths["outputs"] / "synthesize"
 
 
-@pytest.fixture(scope="session")
-def micro_shards(micro_stage_paths, tmp_path_factory, worker_id) -> Path:
-    """Read-only preprocess shards of the micro dataset (the `data_dir` of the training stages)."""
+def _micro_preprocessed(stage_paths, tmp_path_factory, worker_id, name: str, root: str, **kwargs) -> Path:
+    """Shards of one micro `synthesize` output folder (`root`), written once under `name` for all workers."""
     shared = _shared_dir(tmp_path_factory, worker_id)
-    base = shared / "micro_shards"
-    with FileLock(str(shared / "micro_shards.lock")):
+    base = shared / name
+    with FileLock(str(shared / f"{name}.lock")):
         if not (base / "manifest.json").exists():
             from pipeline.data.preprocess import preprocess
 
-            root = micro_stage_paths["outputs"] / "synthesize"
-            preprocess(root, base, height=48, width=64, shard_size=4, progress=False, source="synthetic")
+            preprocess(stage_paths["outputs"] / root, base, 48, 64, shard_size=4, progress=False, **kwargs)
     return base
+
+
+@pytest.fixture(scope="session")
+def micro_shards(micro_stage_paths, tmp_path_factory, worker_id) -> Path:
+    """Read-only preprocess shards of the micro dataset (the `data_dir` of the training stages)."""
+    return _micro_preprocessed(
+        micro_stage_paths, tmp_path_factory, worker_id, "micro_shards", "synthesize", source="synthetic"
+    )
+
+
+@pytest.fixture(scope="session")
+def micro_ood_shards(micro_stage_paths, tmp_path_factory, worker_id) -> Path:
+    """Read-only preprocess shards of the micro run's out-of-distribution set (test split only)."""
+    return _micro_preprocessed(
+        micro_stage_paths,
+        tmp_path_factory,
+        worker_id,
+        "micro_ood_shards",
+        "synthesize_ood",
+        source="synthetic_ood",
+        required=("test",),
+    )
 
 
 @pytest.fixture(scope="session")

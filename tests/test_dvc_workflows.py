@@ -26,7 +26,7 @@ stages:
   preprocess:
     cmd: >-
       python -m stages.preprocess profile=micro progress=false seed=${seed}
-      preprocess.shard_size=${shard_size} tracking.experiment=dvc-workflows
+      preprocess.shard_size=${shard_size} tracking.experiment=dvc-workflows ood.root=null
     deps:
       - outputs/synthesize
     params:

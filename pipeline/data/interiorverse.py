@@ -53,8 +53,9 @@ def light_path(root: Path, scene: str, view: str) -> Path:
 # Splits and listing
 
 
-def read_split(root: str | Path, split: str) -> list[str]:
-    """Scene names of one split file. Missing or empty split files are errors naming the file."""
+def read_split(root: str | Path, split: str, allow_empty: bool = False) -> list[str]:
+    """Scene names of one split file. Missing files are errors naming the file, and so are empty ones
+    unless `allow_empty` (a split a test-only set leaves empty)."""
     path = Path(root) / f"{split}.txt"
     if not path.is_file():
         raise DatasetError(f"{path}: split file not found (expected train.txt, val.txt, test.txt in {root})")
@@ -63,16 +64,17 @@ def read_split(root: str | Path, split: str) -> list[str]:
     except UnicodeDecodeError as exc:
         raise DatasetError(f"{path}: split file is not UTF-8 text ({exc.reason} at byte {exc.start})") from exc
     scenes = [line.strip() for line in text.splitlines() if line.strip() and not line.startswith("#")]
-    if not scenes:
+    if not scenes and not allow_empty:
         raise DatasetError(f"{path}: split file lists no scenes")
     if len(set(scenes)) != len(scenes):
         raise DatasetError(f"{path}: split file lists a scene twice")
     return scenes
 
 
-def read_splits(root: str | Path) -> dict[str, list[str]]:
-    """All three splits; a scene listed in two splits is an error (it would leak test data)."""
-    splits = {s: read_split(root, s) for s in SPLITS}
+def read_splits(root: str | Path, optional: tuple[str, ...] = ()) -> dict[str, list[str]]:
+    """All three splits (those in `optional` may be empty); a scene listed in two splits is an error (it
+    would leak test data)."""
+    splits = {s: read_split(root, s, allow_empty=s in optional) for s in SPLITS}
     seen: dict[str, str] = {}
     for split, scenes in splits.items():
         for scene in scenes:

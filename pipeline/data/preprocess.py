@@ -131,17 +131,20 @@ def preprocess(
     default_fov_x_deg: float | None = None,
     progress: bool = True,
     source: str = "unspecified",
+    required: tuple[str, ...] = iv.SPLITS,
 ) -> PreprocessResult:
     """Validate every view listed by the split files of `root`, resize to (height, width) and write
     `<out>/<split>_<k>.npz` shards and `<out>/manifest.json` (which records `source`, the data's
-    provenance: synthetic or a real dataset). Returns the manifest and rejections."""
+    provenance: synthetic or a real dataset). Returns the manifest and rejections. Every split in
+    `required` must keep a valid view; another may be empty only when its split file lists no scene (a
+    test-only set), and a split whose listed views were all rejected is always an error."""
     t0 = time.perf_counter()
     root, out = Path(root), Path(out)
     if not root.is_dir():
         raise iv.DatasetError(f"{root}: dataset root does not exist (data.interiorverse.root)")
     if shard_size < 1:
         raise ValueError(f"preprocess.shard_size={shard_size}: must be >= 1")
-    splits = iv.read_splits(root)
+    splits = iv.read_splits(root, optional=tuple(s for s in iv.SPLITS if s not in required))
     out.mkdir(parents=True, exist_ok=True)
     for stale in out.glob("*.npz"):
         stale.unlink()
@@ -176,6 +179,8 @@ def preprocess(
         done[split].append(maps)
     for split in iv.SPLITS:
         views = done[split]
+        if not views and split not in required and not splits[split]:
+            continue  # listed empty, allowed: the manifest has no such split (`ShardDataset` names it)
         if not views:
             raise iv.DatasetError(
                 f"{root / (split + '.txt')}: no valid view left in split {split!r} "

@@ -131,6 +131,41 @@ def case_panels(net, meta, nyu: NYUTest, rows: list[dict], key: str, k: int) -> 
     return panels
 
 
+def out_of_distribution(cfg: DictConfig, report: Path) -> dict[str, float]:
+    """Every MaterialNet model of `cfg.models` and the LightNet export `cfg.light_path` on the synthetic
+    test split and the out-of-distribution one (`runs.ood`), beside the trivial baselines fitted on the
+    training split: `<model>/<entry>/...` and `lightnet/<entry>/...` for entry synthetic and
+    synthetic_ood; the per-view rows to `<model>_<entry>_views.csv`."""
+    from torch.utils.data import DataLoader
+
+    from pipeline.data.datasets import ShardDataset, collate_views
+    from pipeline.runs import ood
+    from pipeline.systems.lighting_baselines import mean_training_radiance
+    from pipeline.systems.material_baselines import MaterialBaselines
+
+    resamples, seed = int(cfg.bootstrap), int(cfg.seed)
+    train = ShardDataset(cfg.data_dir, "train", lighting=True)
+    loader = DataLoader(train, batch_size=16, collate_fn=collate_views)
+    material_baselines, constants = MaterialBaselines.fit(loader), mean_training_radiance(loader)
+    roots = {"synthetic": cfg.data_dir, "synthetic_ood": cfg.ood_data_dir}
+    sets = {entry: ShardDataset(root, ood.SPLITS[entry], lighting=True) for entry, root in roots.items()}
+    out = {}
+    for name, path in cfg.models.items():
+        net, _ = load_material_export(path)
+        for entry, dataset in sets.items():
+            rows = ood.material_view_rows(net, dataset, material_baselines)
+            _write_csv(report / f"{name}_{entry}_views.csv", rows)
+            summary = ood.material_summary(rows, resamples, seed)
+            out.update({f"{name}/{entry}/{k.removeprefix('model/')}": v for k, v in summary.items()})
+    system = ood.light_system(str(cfg.profile_name), cfg.models.trained, cfg.light_path, seed)
+    for entry, dataset in sets.items():
+        rows = ood.lighting_view_rows(system, dataset, constants)
+        _write_csv(report / f"lightnet_{entry}_views.csv", rows)
+        summary = ood.lighting_summary(rows, resamples, seed)
+        out.update({f"lightnet/{entry}/{k.removeprefix('model/')}": v for k, v in summary.items()})
+    return out
+
+
 def run(cfg: DictConfig) -> dict[str, float]:
     import mlflow
 
@@ -165,6 +200,8 @@ def run(cfg: DictConfig) -> dict[str, float]:
             panels = case_panels(net, meta, nyu, system.rows["nyuv2"], "normal_deg", int(cfg.figure_cases))
             figure = ranked_cases(panels, report / f"{name}_nyuv2_cases.png")
             mlflow.log_artifact(str(figure), "figures")
+        if cfg.ood_data_dir is not None:
+            metrics.update(out_of_distribution(cfg, report))
         (report / "table.md").write_text(markdown_table(results, sources))
         (report / "sources.json").write_text(json.dumps(sources, indent=1) + "\n")
         publish(report, metrics)

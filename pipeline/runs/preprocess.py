@@ -1,6 +1,8 @@
 """Stage `preprocess`: validates every view of an InteriorVerse-layout root, resizes (mask-aware area
-filter) and writes shards + manifest -> outputs/preprocess; counts -> reports/preprocess/metrics.json,
-its duration -> reports/preprocess/timings.json, both to MLflow."""
+filter) and writes shards + manifest -> outputs/preprocess, and the same for `synthesize`'s
+out-of-distribution test set (`ood.root`, its test split only) -> outputs/preprocess_ood; counts ->
+reports/preprocess/metrics.json (`ood/<count>` for the second set), durations ->
+reports/preprocess/timings.json, both to MLflow; rejections -> rejected.json, rejected_ood.json."""
 
 from __future__ import annotations
 
@@ -11,6 +13,20 @@ from omegaconf import DictConfig
 
 from pipeline.data.preprocess import preprocess
 from pipeline.tracking import publish, stage_run
+
+
+def split_counts(manifest: dict) -> dict[str, float]:
+    """The counts a preprocess manifest reports: views kept and rejected, pixels masked, views and scenes
+    per split."""
+    splits = manifest["splits"]
+    return {
+        "views_kept": sum(len(s["views"]) for s in splits.values()),
+        "views_rejected": manifest["rejected_views"],
+        "pixels_masked_as_inconsistent": manifest["fixed_pixels"],
+        "lighting_available": int(manifest["lighting"]),
+        **{f"{k}_views": len(v["views"]) for k, v in splits.items()},
+        **{f"{k}_scenes": len(v["scenes"]) for k, v in splits.items()},
+    }
 
 
 def run(cfg: DictConfig) -> dict[str, float]:
@@ -37,15 +53,28 @@ def run(cfg: DictConfig) -> dict[str, float]:
         (report / "rejected.json").write_text(
             json.dumps({"source": source, "root": str(root), "rejected": result.rejected}, indent=1) + "\n"
         )
-        splits = result.manifest["splits"]
-        metrics = {
-            "views_kept": sum(len(s["views"]) for s in splits.values()),
-            "views_rejected": result.manifest["rejected_views"],
-            "pixels_masked_as_inconsistent": result.manifest["fixed_pixels"],
-            "lighting_available": int(result.manifest["lighting"]),
-            **{f"{k}_views": len(v["views"]) for k, v in splits.items()},
-            **{f"{k}_scenes": len(v["scenes"]) for k, v in splits.items()},
-        }
-        publish(report, metrics, (report / "rejected.json",), timings={"seconds": result.seconds})
+        metrics = split_counts(result.manifest)
+        timings = {"seconds": result.seconds}
+        ood_root = cfg.ood.root
+        if ood_root is not None:  # the out-of-distribution test set (`synthesize`'s ood): test split only
+            ood = preprocess(
+                ood_root,
+                cfg.ood.out_dir,
+                int(p.height),
+                int(p.width),
+                int(p.shard_size),
+                float(p.max_inconsistent_fraction),
+                None,
+                progress=bool(cfg.progress),
+                source="synthetic_ood",
+                required=("test",),
+            )
+            (report / "rejected_ood.json").write_text(
+                json.dumps({"source": "synthetic_ood", "root": str(ood_root), "rejected": ood.rejected}, indent=1)
+                + "\n"
+            )
+            metrics.update({f"ood/{k}": v for k, v in split_counts(ood.manifest).items()})
+            timings["ood_seconds"] = ood.seconds
+        publish(report, metrics, (report / "rejected.json",), timings=timings)
         mlflow.log_artifact(str(Path(cfg.out_dir) / "manifest.json"))
-    return {**metrics, "seconds": result.seconds}
+    return {**metrics, **timings}

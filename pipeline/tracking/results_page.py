@@ -290,6 +290,98 @@ def section_evaluate(reports: Path) -> list[str]:
     return lines
 
 
+OOD_GATES = (
+    ("albedo_mse", "mean_albedo"),
+    ("normal_angle_deg", "camera_facing_normal"),
+    ("roughness_mse", "mean_material"),
+    ("metallic_mse", "mean_material"),
+    ("depth_log_mse", "constant_depth"),
+)
+OOD_ENTRIES = (("synthetic", "test"), ("synthetic_ood", "out of distribution"))
+
+
+def ratio_cell(views: dict[str, np.ndarray] | None, metric: str, baseline: str) -> str:
+    """mean(model) / mean(baseline) over the views where both are finite, with its interval."""
+    if views is None or f"model/{metric}" not in views or f"{baseline}/{metric}" not in views:
+        return "n/a"
+    a, b = views[f"model/{metric}"], views[f"{baseline}/{metric}"]
+    ok = np.isfinite(a) & np.isfinite(b)
+    if not ok.any() or b[ok].mean() <= 0:
+        return "n/a"
+    r = ratio_bootstrap(a[ok], b[ok], RESAMPLES, SEED)
+    return f"{num(r['ratio'])} {interval(r['lo'], r['hi'])}"
+
+
+def section_out_of_distribution(reports: Path) -> list[str]:
+    lines = ["## Out of distribution (`evaluate`: the `ood` rooms of `synthesize`)", ""]
+    path = reports / "evaluate/trained_synthetic_ood_views.csv"
+    if not path.is_file():
+        return lines + missing("section", path)
+    n = {
+        e: len(v[next(iter(v))])
+        for e in ("synthetic", "synthetic_ood")
+        if (v := read_views(reports / f"evaluate/trained_{e}_views.csv"))
+    }
+    lines += [
+        "Rooms of another style, never trained on (narrow tall galleries, small cool spot lamps, saturated",
+        "glossy walls, concrete floors, mostly metal and plastic boxes), scored by the same code as the test",
+        f"split ({n.get('synthetic', 'n/a')} test views, {n.get('synthetic_ood', 'n/a')} out-of-distribution views).",
+        "From `reports/evaluate/<model>_<split>_views.csv`.",
+        "",
+        "MaterialNet: each map's error over its trivial baseline's (fitted on the training split), the ratio of",
+        "means over views with its 95 % interval; below 1 is better than the baseline.",
+        "",
+    ]
+    models = ("trained", "finetuned")
+    views = {(m, e): read_views(reports / f"evaluate/{m}_{e}_views.csv") for m in models for e, _ in OOD_ENTRIES}
+    header = ["map / baseline", *(f"{m}, {label}" for m in models for _, label in OOD_ENTRIES)]
+    rows = [
+        [
+            f"{metric} / {baseline}",
+            *(ratio_cell(views[(m, e)], metric, baseline) for m in models for e, _ in OOD_ENTRIES),
+        ]
+        for metric, baseline in OOD_GATES
+    ]
+    lines += md_table(header, rows)
+    light = {e: read_views(reports / f"evaluate/lightnet_{e}_views.csv") for e, _ in OOD_ENTRIES}
+    if all(v is not None for v in light.values()):
+        lines += ["", "LightNet (the `train_lighting` export on MaterialNet's G-buffers), means over views:", ""]
+        rows = []
+        for key, label in LIGHT_METRICS[:3]:
+            cells = []
+            for e, _ in OOD_ENTRIES:
+                v = light[e]
+                model = v[f"model/{key}"][np.isfinite(v[f"model/{key}"])]
+                cells.append(num(model.mean()) if len(model) else "n/a")
+                base = v.get(f"scaled_constant/{key}")
+                cells.append(num(base[np.isfinite(base)].mean()) if base is not None else "n/a")
+                diff = v[f"model/{key}"] - base if base is not None else np.array([np.nan])
+                diff = diff[np.isfinite(diff)]
+                d = paired_bootstrap(diff, RESAMPLES, SEED) if len(diff) else None
+                cells.append("n/a" if d is None else f"{signed(d['diff'])} {interval(d['lo'], d['hi'])}")
+            rows.append([label, *cells])
+        header = ["metric"] + [
+            f"{who}, {label}" for _, label in OOD_ENTRIES for who in ("LightNet", "scaled constant", "difference")
+        ]
+        lines += md_table(header, rows)
+    lines.append("")
+    return lines
+
+
+def learning_row(run: dict) -> dict:
+    """`bench.learning_curve`: one run's rooms, steps and minutes, its test re-render and insertion PSNR,
+    and its all-object insertion minus the reference run's, paired by case."""
+    row = {k: run.get(k) for k in ("rooms", "steps", "train_minutes", "render_psnr")}
+    for c in ("mirror", "glossy", "diffuse", "all"):
+        row[f"insertion {c} (dB)"] = (run.get("insertion", {}).get(c) or {}).get("psnr")
+    ref = run.get("insertion", {}).get("all") or {}
+    if "minus_reference" in ref:
+        row["all minus reference"] = (
+            f"{signed(ref['minus_reference'])} {interval(ref['minus_reference_lo'], ref['minus_reference_hi'])}"
+        )
+    return row
+
+
 def flat_rows(rows: list) -> tuple[list[str], list[list[str]]]:
     """A list of flat dicts as (header, cells); nested values are left out."""
     keys = list(dict.fromkeys(k for r in rows for k, v in r.items() if not isinstance(v, dict | list)))
@@ -317,6 +409,8 @@ def bench_block(name: str, data: dict) -> list[str]:
     head = data.get("measured", data.get("summary"))
     if head is None and name == "light_energy":
         head = {f"nMSE ({kind})": v.get("nmse", {}) for kind, v in data.get("kinds", {}).items()}
+    elif head is None and name.startswith("learning_curve"):
+        head = {"each run on the held-out test split": [learning_row(r) for r in data.get("runs", [])]}
     elif head is None and name.startswith("overfit"):
         head = {"each run's last evaluation, on its training rooms": [overfit_row(r) for r in data.get("runs", [])]}
     elif head is None:
@@ -386,6 +480,7 @@ SECTIONS: tuple[Callable[[Path], list[str]], ...] = (
     section_lighting,
     section_edit,
     section_evaluate,
+    section_out_of_distribution,
 )
 
 

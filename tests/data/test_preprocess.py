@@ -191,3 +191,23 @@ def test_datamodule_batches_by_split_with_seeded_shuffle(dataset_copy, tmp_path)
     test_ids = [i for b in dm.test_dataloader() for i in b["id"]]
     train_scenes = {i.split("/")[0] for i in dm.splits["train"].ids}
     assert test_ids and not train_scenes & {i.split("/")[0] for i in test_ids}
+
+
+def test_a_test_only_set_keeps_its_test_split_and_names_the_missing_ones(dataset_copy, tmp_path):
+    """An evaluation-only set (`synthesize`'s ood: train and val files empty) preprocesses when only the
+    test split is required; its manifest has no training split, and reading one is refused by name."""
+    for split in ("train", "val"):
+        (dataset_copy / f"{split}.txt").write_text("")
+    with pytest.raises(iv.DatasetError, match="train.txt: split file lists no scenes"):
+        preprocess(dataset_copy, tmp_path / "all", 24, 32, progress=False)
+    res = preprocess(dataset_copy, tmp_path / "shards", 24, 32, progress=False, required=("test",))
+    assert set(res.manifest["splits"]) == {"test"} and res.manifest["splits"]["test"]["views"]
+    assert len(ShardDataset(tmp_path / "shards", "test")) == len(res.manifest["splits"]["test"]["views"])
+    with pytest.raises(iv.DatasetError, match="has no split 'train'"):
+        ShardDataset(tmp_path / "shards", "train")
+    # a required split whose listed views are all rejected stays an error
+    test_scene = iv.read_split(dataset_copy, "test")[0]
+    for view in iv.list_views(dataset_copy, test_scene):
+        iv.map_path(dataset_copy, test_scene, view, "mask").unlink()
+    with pytest.raises(iv.DatasetError, match="no valid view left in split 'test'"):
+        preprocess(dataset_copy, tmp_path / "again", 24, 32, progress=False, required=("test",))

@@ -153,3 +153,56 @@ def test_furniture_materials_follow_their_kind():
         assert abs(metal - expect) <= 4 * np.sqrt(max(expect * (1 - expect), 1e-4) / 400), kind
     with pytest.raises(ValueError, match="furniture kind"):
         random_material(rng, "furniture", "piano")
+
+
+def test_the_out_of_distribution_style_draws_what_the_standard_rooms_never_do(rooms):
+    """`synthesize`'s ood rooms (the shipped config) lie outside the standard rooms' ranges on layout,
+    lights and materials: narrower, deeper and taller rooms, smaller lamps, saturated glossy walls,
+    grey floors and mostly boxes; the standard rooms (`rooms`) never reach those values."""
+    import colorsys
+
+    from pipeline.runs.synthesize import ood_config
+    from tests.conftest import compose_cfg
+
+    cfg = ood_config(compose_cfg("synthesize", ["profile=tiny"]))
+    assert cfg is not None and cfg.splits == {"train": 0.0, "val": 0.0, "test": 1.0} and not cfg.cases.enabled
+    loft = [generate_room(s, views=1, cfg=cfg.room)[0] for s in SEEDS]
+
+    def walls(room, key):
+        return [m for m in room.materials if m.role == key]
+
+    def lamp_halves(room):
+        return [np.linalg.norm(np.asarray(s.to_world)[:3, 0]) for s in room.shapes if s.role == "lamp"]
+
+    def saturation(rgb):
+        return colorsys.rgb_to_hsv(*rgb)[1]
+
+    for standard, other in ((rooms, False), (loft, True)):
+        widths = [r.size[0] for r in standard]
+        heights = [r.size[1] for r in standard]
+        wall_sat = [saturation(m.albedo) for r in standard for m in walls(r, "wall")]
+        wall_rough = [m.roughness for r in standard for m in walls(r, "wall")]
+        floor_sat = [saturation(m.albedo) for r in standard for m in walls(r, "floor")]
+        lamps = [h for r in standard for h in lamp_halves(r)]
+        if other:
+            assert max(widths) <= 3.2 and min(heights) >= 3.3 and max(lamps) <= 0.12 + 1e-9
+            assert min(wall_sat) >= 0.45 - 1e-9 and max(wall_rough) <= 0.45 and max(floor_sat) <= 0.08 + 1e-9
+        else:
+            assert min(widths) >= 3.2 and max(heights) <= 3.2 and min(lamps) >= 0.15 - 1e-9
+            assert max(wall_sat) <= 0.4 + 1e-9 and min(wall_rough) >= 0.5 and min(floor_sat) >= 0.2 - 1e-9
+    objects = [s.kind for r in loft for s in r.shapes if s.role == "object"]
+    assert objects and objects.count("cube") > 0.7 * len(objects)
+
+
+def test_a_test_only_split_and_bad_fractions():
+    from pipeline.data.synth.generate import assign_splits
+    from pipeline.data.synth.materials import random_material
+
+    only = assign_splits(5, {"train": 0.0, "val": 0.0, "test": 1.0}, 0)
+    assert only["train"] == [] and only["val"] == [] and len(only["test"]) == 5
+    with pytest.raises(ValueError, match="val and test must hold all"):
+        assign_splits(5, {"train": 0.0, "val": 0.0, "test": 0.5}, 0)
+    with pytest.raises(ValueError, match="fractions in"):
+        assign_splits(5, {"train": 0.7, "val": 0.15, "tset": 0.15}, 0)
+    with pytest.raises(ValueError, match="synth.room.palette='neon'"):
+        random_material(np.random.default_rng(0), "wall", palette="neon")

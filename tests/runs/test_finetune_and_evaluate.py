@@ -14,7 +14,7 @@ pytestmark = [pytest.mark.slow, pytest.mark.xdist_group("finetune_and_evaluate")
 
 
 @pytest.fixture(scope="module")
-def evaluated(micro_shards, tmp_path_factory):
+def evaluated(micro_shards, micro_ood_shards, micro_exports, tmp_path_factory):
     from stages import evaluate, finetune, train_material
 
     tmp = tmp_path_factory.mktemp("bench_stages")
@@ -27,7 +27,8 @@ def evaluated(micro_shards, tmp_path_factory):
     ]
     train_material.run(compose_cfg("train_material", [*common, "system_metrics=false"]))
     ft = finetune.run(compose_cfg("finetune", [*common, "trainer.max_epochs=1", "finetune.batch_size=2"]))
-    ev = evaluate.run(compose_cfg("evaluate", common))
+    ood = [f"ood_data_dir={micro_ood_shards}", f"light_path={micro_exports / 'light.pt'}", "bootstrap=200"]
+    ev = evaluate.run(compose_cfg("evaluate", [*common, *ood]))
     return tmp, ft, ev
 
 
@@ -51,6 +52,18 @@ def test_evaluate_reports_both_models_with_their_sources(evaluated):
         for bench in ("iiw", "nyuv2", "synthetic"):
             assert (report / f"{model}_{bench}.csv").read_text().count("\n") >= 2
         assert (report / f"{model}_nyuv2_cases.png").stat().st_size > 5_000
+    for model in ("trained", "finetuned", "lightnet"):  # in and out of distribution, by the same code
+        for entry in ("synthetic", "synthetic_ood"):
+            rows = (report / f"{model}_{entry}_views.csv").read_text().splitlines()
+            assert len(rows) >= 3 and rows[0].startswith("id,")
+    for entry in ("synthetic", "synthetic_ood"):
+        for model in ("trained", "finetuned"):
+            for gate in ("mean_material/metallic_mse", "mean_material/roughness_mse", "mean_albedo/albedo_mse"):
+                lo, ratio, hi = (ev[f"{model}/{entry}/gate/{gate}{s}"] for s in ("_lo", "", "_hi"))
+                assert 0 < lo <= hi and ratio > 0
+        psnr = ev[f"lightnet/{entry}/render_psnr"] - ev[f"lightnet/{entry}/scaled_constant/render_psnr"]
+        assert ev[f"lightnet/{entry}/minus_scaled_constant/render_psnr"] == pytest.approx(psnr, abs=1e-6)
+        assert np.isfinite(ev[f"lightnet/{entry}/surf_light_nmse"])
     table = (report / "table.md").read_text()
     assert "standin-nyuv2" in table and "not comparable" in table and "published" in table
     for model in ("trained", "finetuned"):  # each row: the means of the per-image scores the stage wrote

@@ -159,6 +159,7 @@ def test_paper_profile_runs_one_step_of_every_stage_on_micro_data(tmp_path):
         "synth.height=48",
         "synth.spp=8",
         "synth.lighting={surface_stride: 16, hemi_size: [4, 8], free_points: 2, sphere_size: [8, 16], spp: 4}",
+        "ood.scenes=2",
     ]
     one_step = ["trainer.limit_train_batches=1", "trainer.limit_val_batches=1", "trainer.limit_test_batches=1"]
     synthesize.run(compose_cfg("synthesize", [*common, *micro_synth]))
@@ -189,3 +190,5 @@ def test_paper_profile_runs_one_step_of_every_stage_on_micro_data(tmp_path):
     assert ft["global_step"] >= 1
     ev = evaluate.run(compose_cfg("evaluate", common))
     assert np.isfinite(ev["finetuned/synthetic/normal_angle_deg"])
+    assert np.isfinite(ev["trained/synthetic_ood/gate/mean_material/roughness_mse"])
+    assert np.isfinite(ev["lightnet/synthetic_ood/render_psnr"])

@@ -72,15 +72,23 @@ def scene_seed(seed: int, index: int) -> int:
 
 
 def assign_splits(n: int, fractions: dict, seed: int) -> dict[str, list[str]]:
-    """Split scene names by scene (never by view): shuffled, val/test get round(f*n), at least one
-    each when n >= 3, the rest train."""
-    if n < 3:
-        raise ValueError(f"synth.scenes={n}: need at least 3 scenes for non-empty train/val/test splits")
+    """Split scene names by scene (never by view): shuffled, val/test get round(f*n), at least one each
+    whose fraction is positive, the rest train. A split with fraction 0 stays empty (an evaluation-only
+    dataset: `{train: 0, val: 0, test: 1}`); a positive training fraction needs a training scene left."""
+    unknown = set(fractions) - {"train", "val", "test"}
+    if unknown or any(not 0 <= float(f) <= 1 for f in fractions.values()):
+        raise ValueError(f"synth.splits={fractions}: give train, val and test fractions in [0, 1]")
+    f_test, f_val, f_train = (float(fractions.get(k, 0.0)) for k in ("test", "val", "train"))
+    needed = sum(f > 0 for f in (f_test, f_val, f_train))
+    if n < max(needed, 1):
+        raise ValueError(f"synth.scenes={n}: need at least {max(needed, 1)} scenes for the non-empty splits")
     names = [scene_name(i) for i in np.random.default_rng(seed).permutation(n)]
-    n_test = max(1, round(fractions["test"] * n))
-    n_val = max(1, round(fractions["val"] * n))
-    if n_test + n_val >= n:
+    n_test = max(1, round(f_test * n)) if f_test > 0 else 0
+    n_val = max(1, round(f_val * n)) if f_val > 0 else 0
+    if f_train > 0 and n_test + n_val >= n:
         raise ValueError(f"synth.splits={fractions}: leaves no training scene out of {n}")
+    if f_train == 0 and n_test + n_val != n:
+        raise ValueError(f"synth.splits={fractions}: with no training fraction, val and test must hold all {n}")
     return {
         "test": sorted(names[:n_test]),
         "val": sorted(names[n_test : n_test + n_val]),

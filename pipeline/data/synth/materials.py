@@ -138,13 +138,51 @@ def _furniture_material(rng, kind: str | None, u: float) -> Material:
     return Material(role, hsv_colour(rng, (0.0, 1.0), (0.0, 0.8), (0.05, 0.9)), float(rng.uniform(0.2, 1.0)), 0.0)
 
 
-def random_material(rng: np.random.Generator, role: str, kind: str | None = None) -> Material:
+PALETTES = ("standard", "loft")
+
+
+def _loft_material(rng, role: str, u: float) -> Material | None:
+    """The `loft` palette, a style the standard rooms never show: grey concrete floors, saturated glossy
+    paint on the walls, dark ceilings, and mostly metal or glossy plastic objects. None for the roles it
+    leaves to the standard draws (furniture, mirrors, pictures, lamps)."""
+    if role == "floor":
+        base = hsv_colour(rng, (0.0, 1.0), (0.0, 0.08), (0.15, 0.45))
+        rough = float(rng.uniform(0.3, 0.8))
+        if u < 0.5:
+            other = hsv_colour(rng, (0.0, 1.0), (0.0, 0.08), (0.05, 0.3))
+            return Material(role, base, rough, 0.0, _texture(rng, other, None, ("checker",)))
+        return Material(role, base, rough, 0.0)
+    if role == "wall":
+        return Material(
+            role, hsv_colour(rng, (0.0, 1.0), (0.45, 0.9), (0.15, 0.6)), float(rng.uniform(0.15, 0.45)), 0.0
+        )
+    if role == "ceiling":
+        return Material(role, [float(rng.uniform(0.15, 0.4))] * 3, float(rng.uniform(0.6, 1.0)), 0.0)
+    if role == "object":
+        if u < 0.55:
+            return Material(role, metal_colour(rng), float(np.exp(rng.uniform(np.log(0.02), np.log(0.4)))), 1.0)
+        rough = float(np.exp(rng.uniform(np.log(0.02), np.log(0.3))))
+        return Material(role, hsv_colour(rng, (0.0, 1.0), (0.5, 1.0), (0.1, 0.9)), rough, 0.0)
+    return None
+
+
+def random_material(
+    rng: np.random.Generator, role: str, kind: str | None = None, palette: str = "standard"
+) -> Material:
     """Draw a material for a surface role: floor, wall, ceiling, furniture, object, mirror, picture, lamp.
     `kind` is the furniture kind (see scene.FURNITURE_KINDS), which decides which materials it can be made of.
+    `palette` (`PALETTES`): `standard`, the training rooms' mix, or `loft` (`_loft_material`), another
+    style for out-of-distribution tests.
 
     The mix covers mirror-like to matte roughness, metallic 0, 1 and in between, and textured albedo.
     """
+    if palette not in PALETTES:
+        raise ValueError(f"synth.room.palette={palette!r}: choose one of {PALETTES}")
     u = rng.uniform()
+    if palette == "loft":
+        loft = _loft_material(rng, role, u)
+        if loft is not None:
+            return loft
     if role == "floor":
         base = hsv_colour(rng, (0.05, 0.12), (0.3, 0.7), (0.15, 0.6))
         rough = float(rng.uniform(0.05, 0.5))  # glossy floors are common indoors

@@ -214,6 +214,12 @@ class RoomConfig:
     fov_x_deg: tuple[float, float] = (60.0, 85.0)
     camera_height: tuple[float, float] = (1.1, 1.7)
     camera_pitch_deg: tuple[float, float] = (-25.0, 5.0)
+    # the style knobs an out-of-distribution split turns (the defaults draw the standard rooms)
+    palette: str = "standard"  # materials.PALETTES: how floors, walls, ceilings and objects are drawn
+    sphere_probability: float = 0.6  # objects that are spheres (the rest boxes)
+    object_radius: tuple[float, float] = (0.05, 0.14)  # metres, the object's bounding radius
+    lamp_half_size: tuple[float, float] = (0.15, 0.45)  # metres, half the side of a ceiling panel
+    cool_lamp_probability: float = 0.3  # lamps with a cool (blue) rather than a warm tint
 
 
 def generate_room(seed: int, views: int, cfg: RoomConfig | None = None):
@@ -229,7 +235,7 @@ def generate_room(seed: int, views: int, cfg: RoomConfig | None = None):
     room = Room(seed=seed, size=[W, H, D], materials=[], shapes=[], windows=[], sky=None)
 
     def add_material(role: str, kind: str | None = None) -> int:
-        room.materials.append(random_material(rng, role, kind))
+        room.materials.append(random_material(rng, role, kind, cfg.palette))
         return len(room.materials) - 1
 
     _add_shell(room, rng, cfg, add_material)
@@ -412,7 +418,7 @@ def _add_objects(room: Room, rng, cfg: RoomConfig, add_material, tops) -> None:
     for _ in range(int(rng.integers(cfg.objects[0], cfg.objects[1] + 1))):
         k = int(rng.integers(len(tops)))
         fp, top_y = tops[k]
-        r = float(rng.uniform(0.05, 0.14))
+        r = float(rng.uniform(*cfg.object_radius))
         if np.any(fp.half < r + 0.02):
             continue
         local = rng.uniform(-(fp.half - r - 0.02), fp.half - r - 0.02)
@@ -421,7 +427,7 @@ def _add_objects(room: Room, rng, cfg: RoomConfig, add_material, tops) -> None:
             continue
         placed.append((k, xz, r))
         mat = add_material("object")
-        if rng.uniform() < 0.6:
+        if rng.uniform() < cfg.sphere_probability:
             room.shapes.append(Shape("sphere", sphere_matrix([xz[0], top_y + r, xz[1]], r), mat, "object"))
         else:
             half = r / math.sqrt(2) * np.array([1.0, float(rng.uniform(0.6, 1.4)), 1.0])
@@ -438,7 +444,7 @@ def _add_lamps(room: Room, rng, cfg: RoomConfig, add_material) -> None:
     lamp_m = add_material("lamp")
     boxes: list[Footprint] = []
     for _ in range(n):
-        half = np.array([float(rng.uniform(0.15, 0.45)), float(rng.uniform(0.15, 0.45))])
+        half = np.array([float(rng.uniform(*cfg.lamp_half_size)), float(rng.uniform(*cfg.lamp_half_size))])
         fp = Footprint(
             np.array([rng.uniform(-W / 2 + 0.6, W / 2 - 0.6), rng.uniform(-D / 2 + 0.6, D / 2 - 0.6)]), half, 0.0
         )
@@ -446,7 +452,7 @@ def _add_lamps(room: Room, rng, cfg: RoomConfig, add_material) -> None:
             continue
         boxes.append(fp)
         kelvin_tint = np.array([1.0, float(rng.uniform(0.8, 0.95)), float(rng.uniform(0.6, 0.9))])
-        if rng.uniform() < 0.3:
+        if rng.uniform() < cfg.cool_lamp_probability:
             kelvin_tint = kelvin_tint[::-1].copy()  # a cool lamp now and then
         power = float(rng.uniform(6.0, 30.0)) * (0.1 / (half[0] * half[1])) ** 0.5
         centre = [fp.centre[0], H - 0.001, fp.centre[1]]

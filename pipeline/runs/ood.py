@@ -1,0 +1,111 @@
+"""Both networks on the out-of-distribution test set (`synthesize`'s `ood` rooms: another style, never
+trained on) beside the in-distribution synthetic test split, scored by the same code on both (the
+`evaluate` stage's `synthetic` and `synthetic_ood` entries).
+
+- MaterialNet: each view's map errors (`metrics.synthetic.material_metrics`) and every trivial baseline's
+  (`MaterialBaselines`, fitted on the in-distribution training split: what a model that learned nothing
+  would reach), and per (baseline, map) the ratio model / baseline of their means over views with a
+  bootstrap interval that resamples views (`ratio_bootstrap`): below 1, better than the baseline.
+- LightNet: `train_lighting`'s test metrics per view (light errors at every probe texel, the re-render
+  PSNR) and the content-blind baselines' on the same views and draws (`baseline_metrics`), and LightNet
+  minus each constant light on the re-render PSNR, paired by view.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import torch
+from torch.utils.data import DataLoader
+
+from pipeline.data.datasets import ShardDataset, collate_views
+from pipeline.metrics.bootstrap import paired_bootstrap, ratio_bootstrap
+from pipeline.metrics.synthetic import material_metrics
+from pipeline.systems.material_baselines import BASELINE_MAPS, MaterialBaselines
+
+SPLITS = {"synthetic": "test", "synthetic_ood": "test"}  # entry -> split of its preprocess root
+LIGHT_BASELINES = ("constant", "scaled_constant")  # compared with LightNet on the re-render, paired
+
+
+@torch.no_grad()
+def material_view_rows(net, dataset: ShardDataset, baselines: MaterialBaselines) -> list[dict]:
+    """One row per view: `id`, the model's map errors `model/<metric>` and each baseline's
+    `<baseline>/<metric>` (the metric functions of the synthetic test)."""
+    net.eval()
+    rows = []
+    for batch in DataLoader(dataset, batch_size=4, collate_fn=collate_views):
+        model = material_metrics(net(batch["im"]), batch)
+        base = baselines.metrics(batch)
+        for i, view in enumerate(batch["id"]):
+            row = {"id": view, **{f"model/{k}": float(v[i]) for k, v in model.items()}}
+            row.update({k: float(v[i]) for k, v in base.items()})
+            rows.append(row)
+    return rows
+
+
+def material_summary(rows: list[dict], resamples: int, seed: int) -> dict[str, float]:
+    """Means of the model's and the baselines' errors over views and, per (baseline, map), the ratio of
+    means model / baseline with its interval (`gate/<baseline>/<metric>`, `_lo`, `_hi`). A view whose
+    value is not finite (no valid pixel of a map) is left out of that metric."""
+    out = {}
+    keys = [k for k in rows[0] if k != "id"]
+    for k in keys:
+        values = np.array([r[k] for r in rows], np.float64)
+        out[k] = float(values[np.isfinite(values)].mean())
+    for name, metrics in BASELINE_MAPS.items():
+        for metric in metrics:
+            a = np.array([r[f"model/{metric}"] for r in rows], np.float64)
+            b = np.array([r[f"{name}/{metric}"] for r in rows], np.float64)
+            ok = np.isfinite(a) & np.isfinite(b)
+            ci = ratio_bootstrap(a[ok], b[ok], resamples, seed)
+            out[f"gate/{name}/{metric}"] = ci["ratio"]
+            out[f"gate/{name}/{metric}_lo"] = ci["lo"]
+            out[f"gate/{name}/{metric}_hi"] = ci["hi"]
+    return out
+
+
+@torch.no_grad()
+def lighting_view_rows(system, dataset: ShardDataset, constants) -> list[dict]:
+    """One row per view: `id`, LightNet's test metrics (`model/<metric>`) and the baselines'
+    (`<baseline>/<metric>`) on the same views and directions, as `train_lighting`'s test step scores them."""
+    from pipeline.systems.lighting_baselines import baseline_metrics
+
+    system.eval()
+    rows = []
+    for batch in DataLoader(dataset, batch_size=4, collate_fn=collate_views):
+        views = [{"id": view} for view in batch["id"]]
+        system.evaluate_batch(batch, views)
+        baseline_metrics(batch, constants, system, views)
+        for view in views:  # the model's own columns carry no '/', the baselines' are `<baseline>/<metric>`
+            scores = {(k if "/" in k else f"model/{k}"): v for k, v in view.items() if k != "id"}
+            rows.append({"id": view["id"], **scores})
+    return rows
+
+
+def lighting_summary(rows: list[dict], resamples: int, seed: int) -> dict[str, float]:
+    """Means over views of every column, and LightNet minus each `LIGHT_BASELINES` light on the
+    re-render PSNR (dB), paired by view (`minus_<baseline>/render_psnr`, `_lo`, `_hi`)."""
+    out = {}
+    for k in (k for k in rows[0] if k != "id"):
+        values = np.array([r.get(k, np.nan) for r in rows], np.float64)
+        if np.isfinite(values).any():
+            out[k] = float(values[np.isfinite(values)].mean())
+    for name in LIGHT_BASELINES:
+        diff = [r["model/render_psnr"] - r[f"{name}/render_psnr"] for r in rows]
+        ci = paired_bootstrap(diff, resamples, seed)
+        out[f"minus_{name}/render_psnr"] = ci["diff"]
+        out[f"minus_{name}/render_psnr_lo"] = ci["lo"]
+        out[f"minus_{name}/render_psnr_hi"] = ci["hi"]
+    return out
+
+
+def light_system(profile: str, material_path: str, light_path: str, seed: int):
+    """`train_lighting`'s LightingSystem under `profile` (predicted G-buffers from the MaterialNet export
+    at `material_path`) holding the LightNet export at `light_path`, whose options must be the profile's
+    (`initialise_from_export`)."""
+    from pipeline.runs.ablate import compose
+    from pipeline.runs.train_lighting import build_system, initialise_from_export
+
+    cfg = compose("train_lighting", [f"profile={profile}", f"seed={seed}", f"material_path={material_path}"])
+    system = build_system(cfg)
+    initialise_from_export(system, light_path)
+    return system
