@@ -80,11 +80,11 @@ def _mode_row(mode: str, H: int, W: int, repeats: int) -> dict:
     h = torch.nonzero(hit).squeeze(-1)
     gbh = _gbuffer_at(gb, bidx[h], pixel[h])
     t_local = median_seconds(
-        lambda: net.local.query(ctx["local"], ctx["scale"], bidx[h], pixel[h], (H, W), wi[h], gbh, ctx["image"]),
+        lambda: net.local.query(ctx["local"], ctx["unit"], bidx[h], pixel[h], (H, W), wi[h], gbh, ctx["image"]),
         repeats,
     )
     t_out = median_seconds(
-        lambda: net.out_of_view.query(ctx["feature"], ctx["params"], ctx["scale"], ctx["bounds"], bidx, o, wi),
+        lambda: net.out_of_view.query(ctx["feature"], ctx["params"], ctx["unit"], ctx["bounds"], bidx, o, wi),
         repeats,
     )
     row["local_queries_per_second"] = len(h) / t_local

@@ -212,6 +212,7 @@ PAPER_LIGHT_NET = {
     "gap_units": "window",
     "out_threshold": 0.0,
     "ssrt_compiled": True,
+    "units": "image_mean",
     "local": {
         "backbone": "resnet34",
         "levels": 4,
@@ -224,6 +225,7 @@ PAPER_LIGHT_NET = {
         "skips": [4],
         "activation": "relu",
         "pixel_base": False,
+        "cap": None,
     },
     "out_of_view": {
         "backbone": "resnet34",
@@ -349,11 +351,18 @@ def _released_to_invrender_lightnet(state: dict[str, torch.Tensor], kwargs: dict
     return state
 
 
+RELEASED_LOCAL_CAP = 100.0  # the released local MLP's output clamp (lightnet/models/network/local.py:240)
+
+
 def lightnet_kwargs(state: dict[str, torch.Tensor]) -> dict:
-    """The `paper` LightNet kwargs, with the random Fourier features' size read from the checkpoint."""
+    """The `paper` LightNet kwargs in the released units (the raw HDR image in, radiance in its units out,
+    the local branch capped at `RELEASED_LOCAL_CAP`: `units=absolute`, `local.cap`), with the random
+    Fourier features' size read from the checkpoint."""
     import copy
 
     kwargs = copy.deepcopy(PAPER_LIGHT_NET)
+    kwargs["units"] = "absolute"
+    kwargs["local"]["cap"] = RELEASED_LOCAL_CAP
     bd = state.get("model.Bd")
     if bd is not None and bd.ndim == 2:
         kwargs["local"]["rff_features"] = int(bd.shape[1])

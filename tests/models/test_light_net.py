@@ -279,3 +279,32 @@ def test_exp_activation_reaches_lamp_radiance_and_keeps_densities_softplus():
         assert torch.isfinite(out["radiance"]).all() and (out["radiance"] >= 0).all()
     torch.testing.assert_close(seen["exp"][1], seen["softplus"][1])  # transmittance left: the same densities
     assert not torch.allclose(seen["exp"][0], seen["softplus"][0])  # radiance: another activation
+
+
+def test_absolute_units_read_the_raw_image_and_cap_the_local_branch():
+    """units=absolute (the released convention, `import-released lightnet`): the encoders see the raw HDR
+    image, radiance is in the image's own units (unit 1, so doubling the exposure is a new input, not the
+    same light twice as bright), and local.cap bounds the local branch; image_mean units scale with
+    exposure exactly."""
+    torch.manual_seed(0)
+    im, gbuffer, fov, origin, wi, bidx = _scene()
+    rel = LightNet(mode="ssrt_only")
+    ab = LightNet(mode="ssrt_only", units="absolute", local={"cap": 2.0})
+    ab.load_state_dict(rel.state_dict())
+    with torch.no_grad():
+        ctx = ab.encode(im, gbuffer["depth"], fov)
+        assert torch.equal(ctx["unit"], torch.ones(2)) and torch.allclose(ctx["scale"], im.mean(dim=(1, 2, 3)))
+        raw = ab.local.encoder(im.clamp(min=0))[: ab.local.levels]
+        assert all(torch.equal(a, b) for a, b in zip(ctx["local"], raw, strict=True))
+        for b in ab.local.mlp[-1].bias, rel.local.mlp[-1].bias:
+            b.fill_(50.0)  # far above the cap
+        out = ab(ctx, gbuffer, fov, origin, wi, bidx)["radiance"]
+        hit = out.abs().sum(-1) > 0
+        assert hit.sum() > 10 and torch.allclose(out[hit], torch.full_like(out[hit], 2.0))
+        one = rel(rel.encode(im, gbuffer["depth"], fov), gbuffer, fov, origin, wi, bidx)["radiance"]
+        two = rel(rel.encode(2 * im, gbuffer["depth"], fov), gbuffer, fov, origin, wi, bidx)["radiance"]
+        assert torch.allclose(two, 2 * one, rtol=1e-5) and one.max() > 2.0  # no cap by default
+    with pytest.raises(ValueError, match="model.light_net.units='metres'"):
+        LightNet(units="metres")
+    with pytest.raises(ValueError, match="local.cap=0"):
+        LightNet(local={"cap": 0})

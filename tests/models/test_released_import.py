@@ -235,11 +235,11 @@ def test_mgnet_refusals_name_the_problem_and_write_nothing(kind, mgnet_state, tm
 
 # --- LightNet ----------------------------------------------------------------------------------------
 # The released LightNet sees the raw HDR image and predicts absolute radiance; invrender's LightNet
-# (`paper`) feeds its encoders the log-mean-normalised image, predicts in units of the image mean and
-# samples the local features bilinearly at each level. So the imported weights are compared layer by
-# layer, on the released inputs: the encoders on the raw image, the local features looked up as the
-# released code does (every level upsampled to the first's size, then to the G-buffers' size, read at
-# the hit pixel), radiance at scale 1.
+# (`paper`) feeds its encoders the log-mean-normalised image and predicts in units of the image mean,
+# unless `units=absolute`, which the import writes (with the released local cap). The imported export's
+# own context (`LightNet.encode`) is compared branch by branch: its encoders on the raw image, the local
+# features looked up as the released code does (every level upsampled to the first's size, then to the
+# G-buffers' size, read at the hit pixel; invrender samples each level bilinearly), radiance unit 1.
 
 
 def _lightnet_facts() -> tuple[dict, dict]:
@@ -334,11 +334,17 @@ def test_ssrt_hits_equal_the_released_march(light_case):
     assert agree.sum() >= 20 and (gap[agree] >= 0).all() and (c["dz"][agree] >= 0).all()
 
 
-def _released_features(encoder, im, size) -> list[torch.Tensor]:
-    """invrender's ResNet34 levels on `im`, resampled as the released LocalEncoder does (local.py:66-83)."""
+def _context(net, im, case) -> dict:
+    """The imported export's context for the released input: the raw HDR image in, radiance unit 1."""
+    ctx = net.encode(im, case["depth"][None], float(case["fov_x"]))
+    assert net.units == "absolute" and net.local.cap == 100.0 and torch.equal(ctx["unit"], torch.ones(1))
+    return ctx
+
+
+def _released_features(levels, size) -> list[torch.Tensor]:
+    """invrender's ResNet34 levels, resampled as the released LocalEncoder does (local.py:66-83)."""
     from torch.nn import functional as F
 
-    levels = encoder(im)[:4]
     first = levels[0].shape[-2:]
     up = [F.interpolate(f, first, mode="bilinear", align_corners=True) for f in levels]
     return [F.interpolate(f, size, mode="bilinear", align_corners=True) for f in up]
@@ -352,15 +358,15 @@ def _local(net, im, case):
     b = torch.zeros(len(pixel), dtype=torch.long)
     size = tuple(case["depth"].shape)
     gb = {"albedo": case["albedo"][None], "material": case["material"][None], "normal": case["normal"][None]}
-    feats = _released_features(net.local.encoder, im, size)
-    return net.local.query(feats, torch.ones(1), b, pixel, size, case["wi"][hit], _gbuffer_at(gb, b, pixel))
+    ctx = _context(net, im, case)
+    feats = _released_features(ctx["local"], size)
+    return net.local.query(feats, ctx["unit"], b, pixel, size, case["wi"][hit], _gbuffer_at(gb, b, pixel))
 
 
-def _out_of_view(net, im, origin, wi, t_far):
+def _out_of_view(net, im, origin, wi, t_far, case):
     """The out-of-view branch along the released samples: stratum midpoints of [0.05, t_far] (the released
     jitter fixed at 1/2) with the released segment lengths (to the next sample; the last to t_far)."""
-    feature = net.out_of_view.encoder(im)[-1].mean(dim=(2, 3))
-    params = net.out_of_view.hyper(feature)
+    params = _context(net, im, case)["params"]
     n = net.out_of_view.samples
     z = 0.05 + (t_far[:, None] - 0.05) * (torch.arange(n) + 0.5) / n
     edges = torch.cat([z, t_far[:, None]], 1)
@@ -377,7 +383,7 @@ def test_local_branch_at_ssrt_hits_equals_released(lightnet, light_image, light_
     roughness; the 9-layer skip MLP; ReLU) at the released SSRT hits, through the imported weights."""
     ours = _local(lightnet, light_image, light_case)
     ref = light_case["local"][light_case["hit"]]
-    assert ref.max() < 100  # below the released clamp, which invrender does not have
+    assert ref.max() < 100  # below the released clamp (local.cap): the cap is tested on its own
     assert torch.allclose(ours, ref, atol=1e-5, rtol=1e-4), (ours - ref).abs().max()
 
 
@@ -396,7 +402,7 @@ def test_out_of_view_branch_equals_released(lightnet, light_image, light_case):
     from pipeline.ops.volume import ray_sphere
 
     c = light_case
-    rad, params = _out_of_view(lightnet, light_image, c["positions"], c["wi"], c["t_far"])
+    rad, params = _out_of_view(lightnet, light_image, c["positions"], c["wi"], c["t_far"], c)
     assert torch.allclose(rad, c["out_of_view"], atol=1e-5, rtol=1e-4), (rad - c["out_of_view"]).abs().max()
     raw = HyperMLP.run_generated(params, fourier(c["nerf_points"], 6, pi=False), torch.zeros(256, dtype=torch.long))
     ref = c["nerf_out"][:, [3, 0, 1, 2]]  # released (r, g, b, density) -> invrender (density, r, g, b)
@@ -404,7 +410,7 @@ def test_out_of_view_branch_equals_released(lightnet, light_image, light_case):
 
     t_sphere = ray_sphere(c["sphere_origin"], c["sphere_wi"], 3.0)
     assert torch.allclose(t_sphere, c["sphere_t_far"], atol=1e-5)
-    rad1, _ = _out_of_view(lightnet, light_image, c["sphere_origin"], c["sphere_wi"], t_sphere)
+    rad1, _ = _out_of_view(lightnet, light_image, c["sphere_origin"], c["sphere_wi"], t_sphere, c)
     assert torch.allclose(rad1, c["sphere_out_of_view"], atol=1e-5, rtol=1e-4)
     # elsewhere the released distance is the root of t^2 + 2 (p.d) t + 1 - r^2 (the bug), not invrender's
     p, d = c["positions"], c["wi"]
@@ -424,7 +430,7 @@ def test_blend_equals_released(lightnet, light_image, light_case):
     from pipeline.models.light_net import blend, confidence
 
     c = light_case
-    l_out, _ = _out_of_view(lightnet, light_image, c["positions"], c["wi"], c["t_far"])
+    l_out, _ = _out_of_view(lightnet, light_image, c["positions"], c["wi"], c["t_far"], c)
     l_local = torch.zeros_like(l_out)
     l_local[c["hit"]] = _local(lightnet, light_image, c)
     ours = blend(l_local, l_out, confidence(c["hit"], c["dz"], lightnet.k))

@@ -27,6 +27,10 @@ from pipeline.ops.volume import scene_bounds
 
 MODES = ("mixed", "ssrt_only", "out_of_view_only")
 GAP_UNITS = ("metres", "window")
+# image_mean: the encoders see the log-mean-normalised image and radiance is predicted in units of the image
+# mean (exposure-invariant); absolute: the released LightNet's convention, the raw HDR image in and radiance
+# in the image's own units out (what `invrender import-released lightnet` exports)
+UNITS = ("image_mean", "absolute")
 
 
 def blend(l_ssrt: torch.Tensor, l_out: torch.Tensor, u: torch.Tensor) -> torch.Tensor:
@@ -50,10 +54,14 @@ class LightNet(nn.Module):
         out_of_view: dict | None = None,
         ssrt_compiled: bool = False,
         gap_units: str = "metres",
+        units: str = "image_mean",
     ):
         super().__init__()
         if mode not in MODES:
             raise ValueError(f"model.light_net.mode={mode!r}: choose one of {MODES}")
+        if units not in UNITS:
+            raise ValueError(f"model.light_net.units={units!r}: choose one of {UNITS}")
+        self.units = units
         if gap_units not in GAP_UNITS:
             raise ValueError(f"model.light_net.gap_units={gap_units!r}: choose one of {GAP_UNITS}")
         self.gap_units = gap_units
@@ -65,17 +73,21 @@ class LightNet(nn.Module):
 
     def encode(self, im: torch.Tensor, depth: torch.Tensor, fov_x) -> dict:
         """Per-image context: im (B, 3, H, W) HDR, depth (B, H, W) z-depth metres, fov_x float or (B,)."""
-        ctx = {"scale": image_scale(im), "size": im.shape[-2:]}
+        # scale: the image's exposure (what losses and metrics normalise by); unit: what the branches'
+        # outputs are multiplied by, the same in image_mean units and 1 in absolute ones
+        normalise = self.units == "image_mean"
+        scale = image_scale(im)
+        ctx = {"scale": scale, "unit": scale if normalise else torch.ones_like(scale), "size": im.shape[-2:]}
         bounds = self.out_of_view.bounds if self.out_of_view is not None else None
         if bounds == "box":  # the context holds only what the configured branches read
             ctx["bounds"] = scene_bounds(depth, fov_x)
         if self.gap_units == "window" or bounds == "sphere":
             ctx["depth_min"], ctx["depth_max"] = depth_range(depth)
         if self.local is not None:
-            ctx["local"] = self.local.encode(im)
-            ctx["image"] = im.clamp(min=0) / ctx["scale"].view(-1, 1, 1, 1)
+            ctx["local"] = self.local.encode(im, normalise)
+            ctx["image"] = im.clamp(min=0) / ctx["unit"].view(-1, 1, 1, 1)
         if self.out_of_view is not None:
-            ctx["feature"], ctx["params"] = self.out_of_view.encode(im)
+            ctx["feature"], ctx["params"] = self.out_of_view.encode(im, normalise)
         return ctx
 
     def forward(self, ctx: dict, gbuffer: dict, fov_x, origin, wi, batch_index, generator=None) -> dict:
@@ -94,7 +106,7 @@ class LightNet(nn.Module):
             b, px = batch_index[h], pixel[h]
             gb = _gbuffer_at(gbuffer, b, px)
             l_ssrt = l_ssrt.index_put(
-                (h,), self.local.query(ctx["local"], ctx["scale"], b, px, ctx["size"], wi[h], gb, ctx["image"])
+                (h,), self.local.query(ctx["local"], ctx["unit"], b, px, ctx["size"], wi[h], gb, ctx["image"])
             )
         if self.mode == "ssrt_only":
             return {"radiance": l_ssrt, "u": u, "hit": hit, "out_queries": 0}
@@ -107,7 +119,7 @@ class LightNet(nn.Module):
                 self.out_of_view.query(
                     ctx["feature"],
                     ctx["params"],
-                    ctx["scale"],
+                    ctx["unit"],
                     ctx.get("bounds"),
                     batch_index[q],
                     origin[q],

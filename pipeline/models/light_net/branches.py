@@ -17,7 +17,9 @@ Options reproduce the released layers for `model/light_net=paper` (docs/method.m
 `skips` and random Fourier features (`encoding=rff`), ReLU outputs, and the hypernetwork's structure.
 
 Radiance is in units of the input image's mean (the networks see mean-normalised images), so outputs
-scale with exposure; both are non-negative (softplus).
+scale with exposure; both are non-negative (softplus). `LightNet(units="absolute")` is the released
+convention instead: the encoders see the raw HDR image and radiance is in the image's own units, the local
+branch capped (`cap`, released: 100).
 """
 
 from __future__ import annotations
@@ -122,9 +124,13 @@ class LocalBranch(nn.Module):
         rff_sigma: float = 1.0,
         skips: tuple[int, ...] = (),
         activation: str = "softplus",
+        cap: float | None = None,
     ):
         super().__init__()
         _check("local.encoding", encoding, ENCODINGS)
+        if cap is not None and not float(cap) > 0:
+            raise ValueError(f"model.light_net.local.cap={cap}: give a positive radiance or null")
+        self.cap = None if cap is None else float(cap)
         _check("local.activation", activation, ACTIVATIONS)
         self.encoder = _encoder(backbone)
         self.levels, self.frequencies, self.pixel_base = int(levels), int(frequencies), bool(pixel_base)
@@ -145,8 +151,10 @@ class LocalBranch(nn.Module):
                 self.mlp[-1].bias[:3].zero_()
                 self.mlp[-1].bias[3:].fill_(-4.0)
 
-    def encode(self, im: torch.Tensor) -> list[torch.Tensor]:
-        return self.encoder(normalize_input(im))[: self.levels]
+    def encode(self, im: torch.Tensor, normalise: bool = True) -> list[torch.Tensor]:
+        """Feature levels of im (B, 3, H, W): of its log-mean-normalised copy, or of the raw HDR values
+        (normalise False: the released LightNet's input, `LightNet(units="absolute")`)."""
+        return self.encoder(normalize_input(im) if normalise else im.clamp(min=0))[: self.levels]
 
     def query(self, feats, scale, batch_index, pixel, size, wi, gbuf, image=None):
         """feats: encode() output; scale (B,); batch_index (N,); pixel (N, 2) (row, col) hit pixels;
@@ -188,12 +196,15 @@ class LocalBranch(nn.Module):
             sampled.append(out)
         x = torch.cat([*self._encode_inputs(wi, gbuf), *sampled], -1)
         if not self.pixel_base:
-            return _activate(self.mlp(x), self.activation) * scale[batch_index].unsqueeze(-1)
-        if image is None:
-            raise ValueError("LocalBranch(pixel_base=True).query needs the normalised image")
-        pix = image[batch_index, :, pixel[:, 0], pixel[:, 1]].clamp(min=0)
-        out = self.mlp(torch.cat([x, torch.log1p(pix)], -1))
-        radiance = pix * torch.exp(out[:, :3].clamp(-10.0, 5.0)) + F.softplus(out[:, 3:])
+            radiance = _activate(self.mlp(x), self.activation)
+        else:
+            if image is None:
+                raise ValueError("LocalBranch(pixel_base=True).query needs the normalised image")
+            pix = image[batch_index, :, pixel[:, 0], pixel[:, 1]].clamp(min=0)
+            out = self.mlp(torch.cat([x, torch.log1p(pix)], -1))
+            radiance = pix * torch.exp(out[:, :3].clamp(-10.0, 5.0)) + F.softplus(out[:, 3:])
+        if self.cap is not None:  # the released local MLP's output clamp (in the units it predicts in)
+            radiance = radiance.clamp(max=self.cap)
         return radiance * scale[batch_index].unsqueeze(-1)
 
     def _encode_inputs(self, wi: torch.Tensor, gbuf: torch.Tensor) -> list[torch.Tensor]:
@@ -245,8 +256,11 @@ class OutOfViewBranch(nn.Module):
         self.hyper = HyperMLP(feature_dim, sizes, **(hyper or {}))
         self.far = mlp_stack(feature_dim + fourier_dim(3, dir_frequencies), [64, 64], 3) if far_field else None
 
-    def encode(self, im: torch.Tensor) -> tuple[torch.Tensor, list]:
-        feature = self.to_feature(self.encoder(normalize_input(im))[-1].mean(dim=(2, 3)))
+    def encode(self, im: torch.Tensor, normalise: bool = True) -> tuple[torch.Tensor, list]:
+        """The global feature of im (B, 3, H, W) and the NeRF weights it generates; normalise as
+        `LocalBranch.encode`."""
+        x = normalize_input(im) if normalise else im.clamp(min=0)
+        feature = self.to_feature(self.encoder(x)[-1].mean(dim=(2, 3)))
         return feature, self.hyper(feature)
 
     def query(self, feature, params, scale, bounds, batch_index, origin, wi, generator=None, depth_max=None):
