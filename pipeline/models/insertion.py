@@ -183,13 +183,16 @@ def prepare_view(
     fov: float,
     mask: np.ndarray | None = None,
     gt_maps: dict | None = None,
+    mask_prediction: bool = True,
 ) -> PreparedView:
     """A linear photo (H, W, 3) with its horizontal fov (degrees): MaterialNet's G-buffers of it and
     LightNet's context of them. `mask` (H, W) bool zeroes depth outside the view's valid pixels (as
-    `train_lighting` feeds LightNet); `gt_maps` (InteriorVerse maps of the view, `gbuffers_from_maps`)
-    adds the ground-truth G-buffers, under the same mask, and their context."""
+    `train_lighting` feeds LightNet), in the predicted G-buffers only when `mask_prediction` (False: the
+    predicted depth at lamps and windows too, `train_lighting`'s `lighting.ssrt_depth=every_pixel`);
+    `gt_maps` (InteriorVerse maps of the view, `gbuffers_from_maps`) adds the ground-truth G-buffers,
+    under the mask, and their context."""
     image = _chw(im)
-    pred = gbuffers_from_maps(predict_maps(material_net, meta, im), mask)
+    pred = gbuffers_from_maps(predict_maps(material_net, meta, im), mask if mask_prediction else None)
     gt = gbuffers_from_maps(gt_maps, mask) if gt_maps is not None else None
     net = light_net.eval()
     with torch.no_grad():

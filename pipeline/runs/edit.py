@@ -202,6 +202,10 @@ def view_seed(seed: int, view_id: str) -> int:
 def stage_setup(cfg: DictConfig) -> dict:
     """What every view shares: both networks, the constant lights, the render layers, the view list and
     the views' `max_depth` (the oracle traces as the views were rendered). Sets the Mitsuba variant."""
+    from pipeline.systems.lighting import SSRT_DEPTHS
+
+    if cfg.ssrt_depth not in SSRT_DEPTHS:
+        raise ValueError(f"ssrt_depth={cfg.ssrt_depth!r}: choose one of {SSRT_DEPTHS}")
     root = Path(cfg.data_root)
     material_net, material_meta = load_material_export(cfg.material_path)
     net, _ = load_light_export(cfg.light_path)
@@ -237,7 +241,13 @@ def view_context(
     # predicted depth is zeroed outside the view's valid mask too, as `train_lighting` feeds LightNet
     mask = maps["mask"][..., 0] > 0.5
     prepared = prepare_view(
-        maps["im"], *shared["material"], shared["net"], float(camera["fov_x_deg"]), mask=mask, gt_maps=maps
+        maps["im"],
+        *shared["material"],
+        shared["net"],
+        float(camera["fov_x_deg"]),
+        mask=mask,
+        gt_maps=maps,
+        mask_prediction=cfg.ssrt_depth == "valid",
     )
     view_id = f"{scene}/{view}"
     seed = view_seed(int(cfg.render.seed), view_id)

@@ -268,6 +268,10 @@ def test_prepared_view_holds_the_photo_both_gbuffers_and_their_contexts(micro_ro
     bare = prepare_view(maps["im"], *material, net, fov)  # a photo of one's own: no mask, no ground truth
     assert bare.gt is None and bare.ctx_gt is None
     assert torch.equal(bare.pred["albedo"], v.pred["albedo"])
+    # ssrt_depth=every_pixel: the predicted depth where the mask is off too, the ground truth still masked
+    every = prepare_view(maps["im"], *material, net, fov, mask=mask, gt_maps=maps, mask_prediction=False)
+    assert torch.equal(every.pred["depth"], bare.pred["depth"]) and (every.pred["depth"] > 0).all()
+    assert torch.equal(every.gt["depth"], v.gt["depth"])
 
 
 def test_rows_on_the_same_shading_draw_the_same_directions(micro_root, micro_shards, exports):
@@ -283,6 +287,8 @@ def test_rows_on_the_same_shading_draw_the_same_directions(micro_root, micro_sha
         ["profile=micro", f"data_root={micro_root}", f"data_dir={micro_shards}"]
         + [f"material_path={exports / 'material.pt'}", f"light_path={exports / 'light.pt'}", "oracle.spp=4"],
     )
+    with pytest.raises(ValueError, match="ssrt_depth='all'"):
+        stage_setup(compose_cfg("edit", ["ssrt_depth=all"]))
     shared = stage_setup(cfg)
     seeds = set()
     for scene, view in shared["views"]:
