@@ -196,12 +196,17 @@ def run(rooms, steps: int, budgets, seed: int, data_dir: str, resamples: int, ov
 
 def plot(report: dict, path) -> None:
     """Insertion PSNR per class (bootstrap interval over views) and re-render PSNR (dB) against training
-    minutes (all rooms) and against training rooms (the full budget, log axis)."""
+    steps (all rooms; a step's seconds are what `bench.train_step` measures, the wall minutes of each run
+    are in the JSON) and against training rooms (the full budget, log axis)."""
     fig = Figure(figsize=(11, 4.2), layout="constrained")
     axes = fig.subplots(1, 2)
     most, steps = report["reference"]["rooms"], report["reference"]["steps"]
     axes_runs = (
-        ("train_minutes", "training minutes (this machine)", [r for r in report["runs"] if r["rooms"] == most]),
+        (
+            "steps",
+            "training steps (minutes: the JSON's train_minutes)",
+            [r for r in report["runs"] if r["rooms"] == most],
+        ),
         ("rooms", "training rooms", [r for r in report["runs"] if r["steps"] == steps]),
     )
     reference = next(r for r in report["runs"] if (r["rooms"], r["steps"]) == (most, steps))
