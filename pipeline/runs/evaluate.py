@@ -131,15 +131,28 @@ def case_panels(net, meta, nyu: NYUTest, rows: list[dict], key: str, k: int) -> 
     return panels
 
 
+def light_system(profile: str, material_path: str, light_path: str, seed: int):
+    """`train_lighting`'s LightingSystem under `profile` (predicted G-buffers from the MaterialNet export
+    at `material_path`) holding the LightNet export at `light_path`, whose options must be the profile's
+    (`initialise_from_export`)."""
+    from pipeline.runs.ablate import compose
+    from pipeline.runs.train_lighting import build_system, initialise_from_export
+
+    cfg = compose("train_lighting", [f"profile={profile}", f"seed={seed}", f"material_path={material_path}"])
+    system = build_system(cfg)
+    initialise_from_export(system, light_path)
+    return system
+
+
 def out_of_distribution(cfg: DictConfig, report: Path) -> dict[str, float]:
     """Every MaterialNet model of `cfg.models` and the LightNet export `cfg.light_path` on the synthetic
-    test split and the out-of-distribution one (`runs.ood`), beside the trivial baselines fitted on the
-    training split: `<model>/<entry>/...` and `lightnet/<entry>/...` for entry synthetic and
+    test split and the out-of-distribution one (`systems.out_of_distribution`), beside the trivial
+    baselines fitted on the training split: `<model>/<entry>/...` and `lightnet/<entry>/...` for entry synthetic and
     synthetic_ood; the per-view rows to `<model>_<entry>_views.csv`."""
     from torch.utils.data import DataLoader
 
     from pipeline.data.datasets import ShardDataset, collate_views
-    from pipeline.runs import ood
+    from pipeline.systems import out_of_distribution as ood
     from pipeline.systems.lighting_baselines import mean_training_radiance
     from pipeline.systems.material_baselines import MaterialBaselines
 
@@ -157,7 +170,7 @@ def out_of_distribution(cfg: DictConfig, report: Path) -> dict[str, float]:
             _write_csv(report / f"{name}_{entry}_views.csv", rows)
             summary = ood.material_summary(rows, resamples, seed)
             out.update({f"{name}/{entry}/{k.removeprefix('model/')}": v for k, v in summary.items()})
-    system = ood.light_system(str(cfg.profile_name), cfg.models.trained, cfg.light_path, seed)
+    system = light_system(str(cfg.profile_name), cfg.models.trained, cfg.light_path, seed)
     for entry, dataset in sets.items():
         rows = ood.lighting_view_rows(system, dataset, constants)
         _write_csv(report / f"lightnet_{entry}_views.csv", rows)

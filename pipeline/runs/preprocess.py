@@ -57,6 +57,10 @@ def run(cfg: DictConfig) -> dict[str, float]:
         timings = {"seconds": result.seconds}
         ood_root = cfg.ood.root
         if ood_root is not None:  # the out-of-distribution test set (`synthesize`'s ood): test split only
+            if not Path(ood_root).is_dir():
+                raise FileNotFoundError(
+                    f"{ood_root}: no out-of-distribution set (ood.root); run `synthesize` or set ood.root=null"
+                )
             ood = preprocess(
                 ood_root,
                 cfg.ood.out_dir,

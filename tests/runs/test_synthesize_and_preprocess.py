@@ -31,23 +31,23 @@ def test_synthesize_stage_reports_and_tracks(micro_stage_paths):
 def test_preprocess_stage_reports_and_tracks(micro_stage_paths, tmp_path):
     from stages import preprocess
 
-    cfg = compose_cfg(
-        "preprocess",
-        [
-            "profile=micro",
-            f"paths.outputs={tmp_path}/outputs",
-            f"paths.reports={tmp_path}/reports",
-            "progress=false",
-            f"data.interiorverse.generated_root={micro_stage_paths['outputs']}/synthesize",
-            f"ood.root={micro_stage_paths['outputs']}/synthesize_ood",
-        ],
-    )
+    cfg_args = [
+        "profile=micro",
+        f"paths.outputs={tmp_path}/outputs",
+        f"paths.reports={tmp_path}/reports",
+        "progress=false",
+        f"data.interiorverse.generated_root={micro_stage_paths['outputs']}/synthesize",
+        f"ood.root={micro_stage_paths['outputs']}/synthesize_ood",
+    ]
+    cfg = compose_cfg("preprocess", cfg_args)
     metrics = preprocess.run(cfg)
     assert metrics["views_kept"] == 6 and metrics["views_rejected"] == 0 and metrics["lighting_available"] == 1
     # the out-of-distribution set: its test split only (micro: 2 rooms, 2 views each)
     assert metrics["ood/test_views"] == 4 and metrics["ood/views_rejected"] == 0 and "ood/train_views" not in metrics
     ood = json.loads((tmp_path / "outputs" / "preprocess_ood" / "manifest.json").read_text())
     assert list(ood["splits"]) == ["test"] and ood["source"] == "synthetic_ood" and ood["lighting"]
+    with pytest.raises(FileNotFoundError, match="ood.root=null"):  # a missing set is named, never skipped
+        preprocess.run(compose_cfg("preprocess", [*cfg_args[:-1], f"ood.root={tmp_path}/nowhere"]))
     rejected = json.loads((tmp_path / "reports" / "preprocess" / "rejected.json").read_text())
     assert rejected["source"] == "synthetic" and rejected["rejected"] == []
     manifest = json.loads((tmp_path / "outputs" / "preprocess" / "manifest.json").read_text())

@@ -43,6 +43,7 @@ def test_a_stage_runs_against_a_tracking_server(micro_root, tmp_path):
             [
                 "profile=micro",
                 f"data.interiorverse.generated_root={micro_root}",
+                "ood.root=null",
                 f"out_dir={tmp_path / 'out'}",
                 f"report_dir={tmp_path / 'report'}",
                 f"tracking.uri={uri}",

@@ -17,7 +17,7 @@ pytestmark = pytest.mark.slow
 def _sweep(tmp_path, micro_root, experiment, *extra):
     return run_stage_process(
         "preprocess",
-        ["-m", "profile=micro", "progress=false", f"data.interiorverse.generated_root={micro_root}"]
+        ["-m", "profile=micro", "progress=false", f"data.interiorverse.generated_root={micro_root}", "ood.root=null"]
         + [
             f"tracking.experiment={experiment}",
             "hydra.sweep.dir=sweep",

@@ -1,6 +1,6 @@
 """Both networks on the out-of-distribution test set (`synthesize`'s `ood` rooms: another style, never
 trained on) beside the in-distribution synthetic test split, scored by the same code on both (the
-`evaluate` stage's `synthetic` and `synthetic_ood` entries).
+`evaluate` stage's `synthetic` and `synthetic_ood` entries, `runs.evaluate.out_of_distribution`).
 
 - MaterialNet: each view's map errors (`metrics.synthetic.material_metrics`) and every trivial baseline's
   (`MaterialBaselines`, fitted on the in-distribution training split: what a model that learned nothing
@@ -96,16 +96,3 @@ def lighting_summary(rows: list[dict], resamples: int, seed: int) -> dict[str, f
         out[f"minus_{name}/render_psnr_lo"] = ci["lo"]
         out[f"minus_{name}/render_psnr_hi"] = ci["hi"]
     return out
-
-
-def light_system(profile: str, material_path: str, light_path: str, seed: int):
-    """`train_lighting`'s LightingSystem under `profile` (predicted G-buffers from the MaterialNet export
-    at `material_path`) holding the LightNet export at `light_path`, whose options must be the profile's
-    (`initialise_from_export`)."""
-    from pipeline.runs.ablate import compose
-    from pipeline.runs.train_lighting import build_system, initialise_from_export
-
-    cfg = compose("train_lighting", [f"profile={profile}", f"seed={seed}", f"material_path={material_path}"])
-    system = build_system(cfg)
-    initialise_from_export(system, light_path)
-    return system
