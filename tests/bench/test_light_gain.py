@@ -99,5 +99,11 @@ def test_bench_on_micro_matches_the_edit_stage(micro_root, micro_shards, micro_e
     _, records = score_rows(compose_cfg("edit", [*common, "bootstrap=10"]), ("lightnet",))
     stage = [r["lightnet/psnr"] for r in records if r["kind"] == "object"]
     assert np.allclose([float(r["lightnet/psnr"]) for r in rows], stage, rtol=0, atol=1e-9)
+    # the results page shows the headline rows, one per class
+    from pipeline.tracking.results_page import bench_block
+
+    (rows_summary,) = report["summary"].values()
+    assert [r["class"] for r in rows_summary] == list(report["classes"])
+    assert any("| best gain |" in line for line in bench_block("light_gain", report))
     curve = report["classes"]["all"]["rows"]["lightnet"]["psnr"]
     assert curve[1] == pytest.approx(np.mean(stage))
