@@ -72,8 +72,9 @@ def quoted(value: float, unit: str, source: str) -> dict:
     return {"value": value, "unit": unit, "source": source}
 
 
-def write_report(name: str, payload: dict, device: str = "cpu") -> Path:
-    path = project_root() / "reports" / "bench" / f"{name}.json"
+def write_report(name: str, payload: dict, device: str = "cpu", path: Path | None = None) -> Path:
+    """reports/bench/<name>.json (or `path`): the payload with the bench's name and the machine."""
+    path = Path(path) if path is not None else project_root() / "reports" / "bench" / f"{name}.json"
     path.parent.mkdir(parents=True, exist_ok=True)
     path.write_text(json.dumps({"benchmark": name, "machine": machine(device), **payload}, indent=1) + "\n")
     return path

@@ -10,9 +10,12 @@ maximises it. A best gain above 1 says the light is too dim for that class, belo
 prefers a dimmer light than its mean when the light is blurred (the tone-mapped PSNR of a smeared lamp).
 The gains are fitted on the test cases themselves: a diagnostic of bias, not a calibration.
 
-Also writes each case's scores at gain 1 as a CSV with the `edit` stage's cases.csv columns (`view`, `case`,
-`kind`, `label`, `<row>/psnr`, ...), so `python -m pipeline.bench.compare_runs --cases A B` pairs two
-LightNet exports on the same cases without the oracle row's cost.
+Also writes each object case's scores at gain 1 as a CSV in the column names of the `edit` stage's
+cases.csv (`view`, `case`, `kind`, `label`, `<row>/psnr`, `<row>/ssim`, `<row>/log_l1` for the two rows), so
+`python -m pipeline.bench.compare_runs --cases A.csv B.csv` pairs two light_gain runs (two LightNet
+exports) on the same cases without the oracle row's cost.
+The `edit` configuration is composed from conf/ with `--override` on top: pass `profile=... seed=...` when
+the pipeline's params.yaml uses other values than the defaults (tiny, 0).
 Needs the trained exports and `synthesize`'s cases (`dvc repro train_lighting`). Writes
 reports/bench/light_gain.json (or `--out`), a PNG beside it (PSNR against gain, one panel per class) and
 the CSV (`--cases-csv`, default beside the JSON).
@@ -22,17 +25,17 @@ from __future__ import annotations
 
 import argparse
 import csv
-import json
 import math
 from pathlib import Path
 
 import numpy as np
+import torch
 from matplotlib.figure import Figure
 from matplotlib.ticker import NullLocator
 from tqdm import tqdm
 
-from pipeline.bench.common import machine
-from pipeline.metrics.insertion import case_scores
+from pipeline.bench.common import write_report
+from pipeline.metrics.image import psnr_tonemapped
 
 ROWS = ("lightnet", "scaled_constant")
 CLASSES = ("mirror", "glossy", "diffuse")
@@ -48,14 +51,17 @@ def check_gains(gains) -> tuple[float, ...]:
     return tuple(sorted(set(out) | {1.0}))
 
 
-def case_gain_psnr(render, target, photo, pixels, scale: float, gains) -> list[float]:
-    """Insertion PSNR (dB) of `gain * render` (M, 3) against target (M, 3), one per gain."""
-    return [case_scores(render * g, target, photo, pixels, scale)["psnr"] for g in gains]
+def case_gain_psnr(render: torch.Tensor, target: torch.Tensor, scale: float, gains) -> list[float]:
+    """Insertion PSNR (dB) of `gain * render` against target, HDR radiance (M, 3) of the case's pixels
+    tone-mapped at the photo's mean `scale`, one per gain: the `edit` stage's PSNR (`case_scores`)."""
+    s = torch.full((len(render),), float(scale), dtype=torch.float64)
+    pred, truth = render.double(), target.double()
+    return [float(psnr_tonemapped(pred * g, truth, s)) for g in gains]
 
 
 def summarise(records: list[dict], gains: tuple[float, ...], rows=ROWS) -> dict:
     """Per class and over all objects, per row: mean PSNR at every gain, the best gain and its PSNR, and
-    the PSNR at gain 1. records: {label, "<row>@gains": [psnr per gain]}."""
+    the PSNR at gain 1. records: {view, label, "<row>@gains": [psnr per gain]}."""
     out = {}
     for label in (*CLASSES, "all"):
         rs = [r for r in records if label == "all" or r["label"] == label]
@@ -95,8 +101,8 @@ def headline(classes: dict) -> list[dict]:
 
 
 def run(overrides: list[str], gains: tuple[float, ...], cases_csv: Path, progress: bool = True) -> dict:
-    """Scores every object case of the `edit` configuration composed with `overrides` (light_path,
-    material_path, data_root, ...); writes the per-case CSV and returns the report."""
+    """Scores every object case of the test views of the `edit` configuration composed with `overrides`
+    (light_path, material_path, data_root, ...); writes the per-case CSV and returns the report."""
     from pipeline.runs import edit
     from pipeline.runs.ablate import compose
 
@@ -106,17 +112,17 @@ def run(overrides: list[str], gains: tuple[float, ...], cases_csv: Path, progres
     for scene, view in tqdm(shared["views"], desc="light gain", unit="view", disable=not progress):
         ctx, cases = edit.view_context(shared, scene, view, cfg, oracle=False)
         v = ctx["view"]
-        # every case goes in, edits too, so that each object keeps the `edit` stage's seed (its index)
-        for res in edit.score_view(ctx, cases, cfg, ROWS):
+        objects = [c for c in cases if c.kind == "object"]
+        # a case's seed is its index in the view's list: objects come first (`cases.read_cases`), so the
+        # objects alone keep the seeds the `edit` stage gives them
+        if cases[: len(objects)] != objects:
+            raise ValueError(f"{ctx['id']}: edits listed before objects; the seeds would differ from `edit`'s")
+        for res in edit.score_view(ctx, objects, cfg, ROWS):
             case = res["case"]
-            if case.kind != "object":
-                continue
             rec = {"view": ctx["id"], "label": case.label}
             row = {"view": ctx["id"], "case": case.name, "kind": case.kind, "label": case.label}
             for name in ROWS:
-                rec[f"{name}@gains"] = case_gain_psnr(
-                    res["renders"][name], case.radiance, v.photo, case.pixel, float(v.scale), gains
-                )
+                rec[f"{name}@gains"] = case_gain_psnr(res["renders"][name], case.radiance, float(v.scale), gains)
                 row.update({f"{name}/{k}": s for k, s in res["rows"][name].items()})
             records.append(rec)
             csv_rows.append(row)
@@ -174,13 +180,15 @@ def main(argv=None) -> None:
     p.add_argument("--cases-csv", default=None, help="per-case CSV at gain 1 (default: <out>_cases.csv)")
     p.add_argument("--override", nargs="*", default=[], help="more `edit` config overrides (data_root=...)")
     a = p.parse_args(argv)
-    gains = check_gains(a.gains)
+    try:
+        gains = check_gains(a.gains)
+    except ValueError as exc:
+        p.error(str(exc))
     out = Path(a.out)
     cases_csv = Path(a.cases_csv) if a.cases_csv else out.with_name(out.stem + "_cases.csv")
     overrides = [f"light_path={a.model}", f"material_path={a.material}", *a.override]
     report = run(overrides, gains, cases_csv)
-    out.parent.mkdir(parents=True, exist_ok=True)
-    out.write_text(json.dumps({"benchmark": "light_gain", "machine": machine(), **report}, indent=1) + "\n")
+    write_report("light_gain", report, path=out)
     plot(report, out.with_suffix(".png"))
     for label, entry in report["classes"].items():
         r = entry["rows"]["lightnet"]

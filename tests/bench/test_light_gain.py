@@ -45,6 +45,20 @@ def test_a_render_is_linear_in_the_light():
     assert (a > 0).all()
 
 
+def test_gain_psnr_is_the_edit_stage_psnr_of_the_scaled_render():
+    from pipeline.metrics.insertion import case_scores
+
+    g = torch.Generator().manual_seed(1)
+    target = torch.rand(40, 3, generator=g) * 3
+    photo, pixels = torch.rand(16, 16, 3, generator=g), torch.arange(10, 50)
+    gains = (0.5, 1.0, 2.0, 4.0)
+    curve = lg.case_gain_psnr(target / 2, target, 0.7, gains)
+    # a render at half the truth is exact at gain 2, and worse the further the gain is from 2
+    assert curve[2] == pytest.approx(120.0) and curve[0] < curve[1] < curve[2] > curve[3]
+    for gain, value in zip(gains, curve, strict=True):
+        assert value == pytest.approx(case_scores(target / 2 * gain, target, photo, pixels, 0.7)["psnr"], abs=1e-9)
+
+
 def test_gains_are_checked_and_include_one():
     assert lg.check_gains([2, 0.5]) == (0.5, 1.0, 2.0)
     for bad in ([0.0], [-1.0], [float("nan")], [float("inf")], []):
@@ -66,6 +80,9 @@ def test_summary_finds_each_class_best_gain():
     assert s["all"]["rows"]["scaled_constant"]["best_gain"] == 2.0
     assert s["all"]["rows"]["lightnet"]["psnr"] == pytest.approx([8.75, 9.25, 9.25])
     assert s["all"]["rows"]["lightnet"]["best_gain"] == 1.0  # the first of equal maxima
+    rows = {r["class"]: r for r in lg.headline(s)}
+    assert rows["diffuse"]["best gain"] == 2.0 and rows["diffuse"]["LightNet at best gain (dB)"] == 10.0
+    assert rows["all"]["scaled constant (dB)"] == 6.0 and rows["mirror"]["LightNet at gain 1 (dB)"] == 9.0
 
 
 @pytest.mark.slow
@@ -95,6 +112,11 @@ def test_bench_on_micro_matches_the_edit_stage(micro_root, micro_shards, micro_e
         rows = list(csv.DictReader(fh))
     assert rows and all(r["kind"] == "object" for r in rows)
     assert report["classes"]["all"]["cases"] == len(rows)
+    # the CSV is what compare_runs pairs: itself against itself is no difference anywhere
+    from pipeline.bench.compare_runs import compare_cases
+
+    same = compare_cases(tmp_path / "gain_cases.csv", tmp_path / "gain_cases.csv")
+    assert same["object/all"]["diff"] == 0.0
     # at gain 1 each case scores what the edit stage's lightnet row scores (same seeds and directions)
     _, records = score_rows(compose_cfg("edit", [*common, "bootstrap=10"]), ("lightnet",))
     stage = [r["lightnet/psnr"] for r in records if r["kind"] == "object"]
