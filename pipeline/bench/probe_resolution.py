@@ -317,19 +317,20 @@ def plot(report: dict, path: Path) -> None:
     widths = [s[1] for s in report["sizes"]]
     fig = Figure(figsize=(3.2 * len(labels), 3.3))
     axes = fig.subplots(1, len(labels), squeeze=False)[0]
-    styles = {
-        "lightnet_fine": ("C0", "-"),
-        "lightnet_true_out": ("C3", "-."),
-        "nearest_probe_fine": ("C1", "--"),
-        "oracle": ("k", ":"),
+    r0, c0 = report["sizes"][0]
+    styles = {  # row: (colour, line style, legend)
+        "lightnet_fine": ("C0", "-", "LightNet"),
+        "lightnet_true_out": ("C3", "-.", f"LightNet, true {r0}x{c0} light out of view"),
+        "nearest_probe_fine": ("C1", "--", "nearest ground-truth probe"),
+        "oracle": ("k", ":", "oracle (edit stage, 1 path per ray)"),
     }
     for ax, label in zip(axes, labels, strict=True):
         entry = report["classes"][label]
         curve = [entry["psnr"][f"centre_{r}x{c}"] for r, c in report["sizes"]]
-        ax.plot(widths, curve, "o-", color="C2", label="true light at the centre")
-        for row, (colour, ls) in styles.items():
+        ax.plot(widths, curve, "o-", color="C2", label="true light at the object's centre")
+        for row, (colour, ls, legend) in styles.items():
             if row in entry["psnr"]:
-                ax.axhline(entry["psnr"][row], color=colour, ls=ls, lw=1, label=row)
+                ax.axhline(entry["psnr"][row], color=colour, ls=ls, lw=1, label=legend)
         ax.set_xscale("log", base=2)
         ax.set_xticks(widths)
         ax.set_xticklabels([f"{r}x{c}" for r, c in report["sizes"]], fontsize=7)
