@@ -2,13 +2,14 @@
 metrics gathered into `reports/report/`:
 
 - `ablations.md`: the paper-style table. Per preset, means over seeds with their spread (half the range),
-  and against its reference (`full` for LightNet, `material_small` for MaterialNet) the paired difference
-  per seed on the preset's claim metric; `full`'s test-time out-of-view thresholds as rows of their own
-  (`full:out_threshold_<t>`: the same weights, paired with `full` on the re-render PSNR). A difference
-  counts only when every seed's difference has the same sign and its mean exceeds the reference's own
-  seed spread; otherwise it is "no difference". Beside each claim of the paper: supported, contradicted,
-  or not shown. Then stability (non-finite metrics, unavailable presets, the five worst test views are in
-  the stage reports) and the main stages' gates.
+  and against its reference (`full` for LightNet, `material_small` for MaterialNet) the paired
+  difference on the preset's claim metric: the mean over seeds with a t interval over the seeds'
+  differences (`metrics.verdicts.seed_effect`); `full`'s test-time out-of-view thresholds as rows of
+  their own (`full:out_threshold_<t>`: the same weights, paired with `full` on the re-render PSNR). The
+  paper's claims are tested together, Holm-adjusted (`metrics.verdicts.decide`): supported,
+  contradicted, inconclusive or not testable, with the power at a stated effect size. Then stability
+  (non-finite metrics, unavailable presets, the five worst test views are in the stage reports) and the
+  main stages' gates.
 - `pareto.png`: accuracy (insertion PSNR over all objects, and test re-render PSNR) against full-frame
   seconds per image, one point per preset (mean over seeds) and per test-time threshold, the Pareto
   front marked; training minutes in the second row.
@@ -27,6 +28,7 @@ from pathlib import Path
 import numpy as np
 from omegaconf import DictConfig
 
+from pipeline.metrics.verdicts import decide, power, seed_effect
 from pipeline.tracking import publish, stage_run
 from pipeline.tracking.figures import pareto_figure
 from pipeline.tracking.results_page import render as render_results
@@ -72,34 +74,66 @@ def spread(values: list[float]) -> tuple[float, float]:
     return float(v.mean()), float((v.max() - v.min()) / 2) if len(v) > 1 else 0.0
 
 
-def compare(runs: dict, preset: str, reference: str, key: str, higher: bool) -> dict:
-    """Paired per-seed differences preset - reference on `key`; the verdict from their signs against
-    the reference's seed spread: 'preset better', 'reference better' or 'no difference'."""
+# a claim's effect size for the power column: 0.5 dB on a PSNR, else this share of the reference's mean
+POWER_DB, POWER_SHARE = 0.5, 0.05
+
+
+def compare(runs: dict, preset: str, reference: str, key: str) -> dict:
+    """Paired per-seed differences preset - reference on `key` (each a mean over the same test views) and
+    their t interval over seeds (`metrics.verdicts.seed_effect`): {"seeds", "diffs", "diff", "lo", "hi",
+    "p", "se", "reference_mean"}; no seeds with both values: seeds 0."""
     seeds = sorted(set(runs.get(preset, {})) & set(runs.get(reference, {})))
-    diffs = []
+    diffs, ref = [], []
     for s in seeds:
         a, b = runs[preset][s]["metrics"].get(key), runs[reference][s]["metrics"].get(key)
         if a is not None and b is not None and math.isfinite(a) and math.isfinite(b):
             diffs.append(a - b)
+            ref.append(b)
     if not diffs:
-        return {"seeds": 0, "diffs": [], "verdict": "not measured"}
-    _, ref_spread = spread([runs[reference][s]["metrics"][key] for s in seeds])
-    mean = float(np.mean(diffs))
-    same_sign = all(d > 0 for d in diffs) or all(d < 0 for d in diffs)
-    if len(diffs) < 2 or not same_sign or abs(mean) <= ref_spread:
-        verdict = "no difference"
-    else:
-        verdict = "preset better" if (mean > 0) == higher else "reference better"
-    return {"seeds": len(diffs), "diffs": diffs, "mean": mean, "reference_spread": ref_spread, "verdict": verdict}
+        return {"seeds": 0, "diffs": [], "diff": float("nan"), "p": float("nan")}
+    effect = seed_effect([np.array([d]) for d in diffs])
+    return {**effect, "seeds": len(diffs), "diffs": diffs, "reference_mean": float(np.mean(ref))}
 
 
-def claim_status(preset: dict, verdict: str) -> str:
-    if not preset.get("claim"):
-        return ""
-    if verdict in ("no difference", "not measured"):
-        return "not shown"
-    wanted = preset["expect"]["holds_if"].replace("_", " ")
-    return "supported" if verdict == wanted else "contradicted"
+def expected_sign(expect: dict) -> int:
+    """The sign of preset - reference on the metric that the claim predicts (`holds_if` with the metric's
+    direction)."""
+    holds = expect.get("holds_if")
+    if holds not in ("reference_better", "preset_better"):
+        raise ValueError(f"expect.holds_if={holds!r}: choose reference_better or preset_better")
+    preset_higher = (holds == "preset_better") == bool(expect["higher_is_better"])
+    return 1 if preset_higher else -1
+
+
+def claim_verdicts(runs: dict, alpha: float = 0.05) -> dict[str, dict]:
+    """Every preset with a paper claim, tested on its claim's metric against its reference, as one family
+    (Holm): {preset: compare()'s fields + "p_holm", "verdict", "metric", "effect_size", "power"}. A preset
+    that did not run here (unavailable) or has fewer than two seeds is `not testable`. `power`: the
+    probability of a verdict at the family's strictest level (alpha / number of testable claims) if the
+    true difference were `effect_size` (0.5 dB on a PSNR, else 5 % of the reference's mean) and the seeds
+    spread as observed."""
+    claims, found = {}, {}
+    for name, seeds in runs.items():
+        first = seeds[next(iter(seeds))]["preset"]
+        if not first.get("claim") or not first.get("expect"):
+            continue
+        e = first["expect"]
+        unavailable = any("unavailable" in d["preset"] for d in seeds.values())
+        c = {"seeds": 0, "diffs": []} if unavailable else compare(runs, name, first["reference"], e["metric"])
+        found[name] = (c, e)
+        claims[name] = {"diffs": [np.array([d]) for d in c["diffs"]], "expected_sign": expected_sign(e)}
+    decided = decide(claims, alpha)
+    testable = sum(1 for d in decided.values() if d["seeds"] >= 2)
+    out = {}
+    for name, d in decided.items():
+        c, e = found[name]
+        size = POWER_DB if e["metric"].endswith("psnr") else POWER_SHARE * abs(c.get("reference_mean", float("nan")))
+        sd = d.get("se", float("nan")) * math.sqrt(d["seeds"]) if d["seeds"] >= 2 else float("nan")
+        pw = (
+            power(size, sd, int(d["seeds"]), alpha / max(testable, 1)) if math.isfinite(sd) and sd > 0 else float("nan")
+        )
+        out[name] = {**c, **d, "metric": e["metric"], "effect_size": size, "power": pw}
+    return out
 
 
 def _fmt(mean: float, half: float) -> str:
@@ -109,9 +143,24 @@ def _fmt(mean: float, half: float) -> str:
     return f"{mean:.{digits}f} ± {half:.{digits}f}" if half else f"{mean:.{digits}f}"
 
 
+def _p(value: float) -> str:
+    return "n/a" if not math.isfinite(value) else f"{value:.2g}"
+
+
+def _interval(c: dict) -> str:
+    """'-0.412 [-0.9, +0.08] (seeds: -0.3, -0.5)': the mean difference, its 95 % t interval over seeds and
+    each seed's difference; 'not testable' under two seeds."""
+    per_seed = ", ".join(f"{d:+.3g}" for d in c["diffs"])
+    if c["seeds"] < 2:
+        return f"{per_seed or 'no seed'} (not testable: fewer than 2 seeds)"
+    return f"{c['diff']:+.3g} [{c['lo']:+.3g}, {c['hi']:+.3g}] (seeds: {per_seed})"
+
+
 def table(runs: dict, stage: str, columns: list) -> tuple[list[str], dict[str, float]]:
-    """Markdown rows of one stage's presets and the numbers behind them."""
+    """Markdown rows of one stage's presets and the numbers behind them; the claim verdicts are decided
+    over every claim in `runs` as one family."""
     lines, numbers = [], {}
+    verdicts = claim_verdicts(runs)
     header = [
         "preset",
         "changes",
@@ -119,9 +168,9 @@ def table(runs: dict, stage: str, columns: list) -> tuple[list[str], dict[str, f
         *[c[1] for c in columns],
         "s/image",
         "train min",
-        "vs reference",
+        "vs reference (95 % t interval over seeds)",
         "paper claim",
-        "this run",
+        "verdict",
     ]
     lines.append("| " + " | ".join(header) + " |")
     lines.append("|" + "---|" * len(header))
@@ -150,17 +199,18 @@ def table(runs: dict, stage: str, columns: list) -> tuple[list[str], dict[str, f
             cells.append(_fmt(mean, half))
         ref = first.get("reference", "")
         versus, status = "", ""
-        if name != ref and first.get("expect"):
-            e = first["expect"]
-            c = compare(runs, name, ref, e["metric"], bool(e["higher_is_better"]))
-            per_seed = ", ".join(f"{d:+.3f}" for d in c["diffs"])
-            versus = f"{e['metric']}: {per_seed} -> {c['verdict']}"
-            status = claim_status(first, c["verdict"])
-            numbers[f"{name}/vs_reference/{e['metric']}"] = c.get("mean", float("nan"))
+        if name in verdicts:
+            v = verdicts[name]
+            versus = f"{v['metric']}: {_interval(v)}"
+            status = f"{v['verdict']} (Holm p {_p(v['p_holm'])}; power {_p(v['power'])} at {v['effect_size']:.3g})"
+            numbers[f"{name}/vs_reference/{v['metric']}"] = float(v["diff"])
+            for field in ("lo", "hi", "p_holm", "power"):
+                numbers[f"{name}/vs_reference/{v['metric']}/{field}"] = float(v.get(field, float("nan")))
         elif name != ref:
-            key = columns[0][0]
-            c = compare(runs, name, ref, key, columns[0][2])
-            versus = f"{key}: " + ", ".join(f"{d:+.3f}" for d in c["diffs"]) + f" -> {c['verdict']}"
+            key = first.get("expect", {}).get("metric", columns[0][0])
+            c = compare(runs, name, ref, key)
+            versus = f"{key}: {_interval(c)}"
+            numbers[f"{name}/vs_reference/{key}"] = float(c["diff"])
         lines.append(
             f"| {name} | {first['changes']} | {len(seeds)} | "
             + " | ".join(cells)
@@ -297,8 +347,13 @@ def run(cfg: DictConfig) -> dict[str, float]:
         f"# Ablations ({cfg.profile_name})",
         "",
         "Means over seeds ± half their range. `vs reference`: the preset minus its reference on the claim's",
-        "metric, per seed (same seed, same data, same schedule); a difference counts only when every seed",
-        "agrees in sign and the mean exceeds the reference's own seed spread, else it is no difference.",
+        "metric (same seed, same data, same schedule, same test views), the mean over seeds with its 95 % t",
+        "interval over the seeds' differences (both the seeds' and the views' noise are in it), and each",
+        "seed's difference. Verdicts (`pipeline/metrics/verdicts.py`): the claims form one family, tested",
+        "at 5 % family-wise by Holm's procedure: supported, contradicted, inconclusive, or not testable",
+        "(fewer than 2 seeds, or the preset cannot run here); `power`: the chance of a verdict if the true",
+        "difference were the stated size (0.5 dB on a PSNR, else 5 % of the reference's mean) with the seed",
+        "spread observed.",
         "s/image: median seconds of a full-frame re-render at the evaluation spp on this machine.",
         "`full:out_threshold_t`: `full`'s own weights tested with the out-of-view branch queried only where",
         "u >= t (no training and no insertion at a threshold), paired with `full` seed by seed.",

@@ -197,33 +197,36 @@ def _fake_runs(tmp_path: Path, values: dict[tuple[str, int], float]) -> Path:
     return root
 
 
-def test_report_verdicts_follow_the_seed_spread(tmp_path):
-    from pipeline.runs.report import claim_status, compare, read_runs
+def test_report_verdicts_are_tested_over_seeds_as_one_family(tmp_path):
+    from pipeline.runs.report import claim_verdicts, compare, expected_sign, read_runs, table
 
-    runs = read_runs(
-        _fake_runs(
-            tmp_path,
-            {
-                ("full", 0): 20.0,
-                ("full", 1): 20.4,  # spread 0.2 (half range)
-                ("no_mc", 0): 19.0,
-                ("no_mc", 1): 19.5,  # -1.0, -0.9: every seed, beyond the spread
-                ("spp_2", 0): 20.1,
-                ("spp_2", 1): 20.2,  # +0.1, -0.2: signs differ
-                ("ssrt_only", 0): 19.9,
-                ("ssrt_only", 1): 20.3,  # -0.1, -0.1: inside the spread
-            },
-        )
-    )
-    assert compare(runs, "no_mc", "full", "test/render_psnr", True)["verdict"] == "reference better"
-    assert compare(runs, "spp_2", "full", "test/render_psnr", True)["verdict"] == "no difference"
-    assert compare(runs, "ssrt_only", "full", "test/render_psnr", True)["verdict"] == "no difference"
-    assert compare(runs, "no_mc", "full", "test/render_psnr", False)["verdict"] == "preset better"
-    meta = runs["no_mc"][0]["preset"]
-    assert (
-        claim_status(meta, "reference better") == "supported" and claim_status(meta, "preset better") == "contradicted"
-    )
-    assert claim_status(meta, "no difference") == "not shown"
+    values = {("full", s): 20.0 + 0.2 * s for s in range(3)}
+    values.update({("no_mc", s): 19.0 + 0.2 * s + 0.01 * s * s for s in range(3)})  # -1.0, -0.99, -0.96
+    values.update({("spp_2", s): 20.0 + (0.3, -0.4, 0.2)[s] for s in range(3)})  # mean near 0, wide
+    values.update({("ssrt_only", s): 20.0 + 0.2 * s + 0.5 for s in range(2)})  # the preset better, 2 seeds
+    runs = read_runs(_fake_runs(tmp_path, values))
+    c = compare(runs, "no_mc", "full", "test/render_psnr")
+    assert c["seeds"] == 3 and c["diff"] == pytest.approx(-0.9833, abs=1e-3) and c["hi"] < 0
+    v = claim_verdicts(runs)
+    assert v["no_mc"]["verdict"] == "supported"  # the claim: the reference better, and it is
+    assert v["spp_2"]["verdict"] == "inconclusive"
+    # two seeds exactly +0.5 apart from the reference: no spread, p = 0, yet the claim says worse
+    assert v["ssrt_only"]["verdict"] == "contradicted"
+    assert v["no_mc"]["p_holm"] >= v["no_mc"]["p"]  # adjusted over the family of three claims
+    assert 0 < v["spp_2"]["power"] < 1 and v["no_mc"]["effect_size"] == 0.5
+    assert expected_sign({"higher_is_better": False, "holds_if": "reference_better"}) == 1
+    with pytest.raises(ValueError, match="holds_if"):
+        expected_sign({"higher_is_better": True, "holds_if": ""})
+    rows, numbers = table(runs, "train_lighting", [("test/render_psnr", "re-render", True)])
+    assert any("| no_mc |" in r and "supported (Holm p" in r for r in rows)
+    assert numbers["no_mc/vs_reference/test/render_psnr/hi"] < 0
+
+
+def test_a_claim_with_one_seed_is_not_testable(tmp_path):
+    from pipeline.runs.report import claim_verdicts, read_runs
+
+    runs = read_runs(_fake_runs(tmp_path, {("full", 0): 20.0, ("no_mc", 0): 19.0}))
+    assert claim_verdicts(runs)["no_mc"]["verdict"] == "not testable"
 
 
 def test_report_refuses_a_run_folder_missing_its_metrics(tmp_path):
@@ -262,7 +265,8 @@ def test_report_lists_the_test_time_thresholds_paired_with_their_weights(tmp_pat
     assert list(derived) == ["full:out_threshold_0.5"] and sorted(derived["full:out_threshold_0.5"]) == [0, 1]
     lines, numbers = table({**runs, **derived}, "train_lighting", [("test/render_psnr", "re-render PSNR", True)])
     [row] = [line for line in lines if line.startswith("| full:out_threshold_0.5 |")]
-    assert "19.65 ± 0.15" in row and "0.500" in row and "-0.500, -0.600 -> reference better" in row
+    # paired seed by seed (-0.5, -0.6): the mean and its t interval over the two seeds (t_1 = 12.7)
+    assert "19.65 ± 0.15" in row and "0.500" in row and "-0.55 [-1.19, +0.0853] (seeds: -0.5, -0.6)" in row
     assert numbers["full:out_threshold_0.5/vs_reference/test/render_psnr"] == pytest.approx(-0.55)
     [point] = [p for p in pareto_points(runs) if p["label"] == "full:out_threshold_0.5"]
     assert point["seconds"] == 0.5 and point["render_psnr"] == pytest.approx(19.65)

@@ -1,0 +1,127 @@
+"""Verdicts of ablation claims: is a preset's difference from its reference real, across training seeds
+and test views, with the error rate controlled over all the claims tested together?
+
+A claim compares a preset with its reference on one metric, paired: the same test views under the same
+seed. Its data are per-view differences d[s, v] = preset - reference for seeds s = 1..S and views
+v = 1..V. Two sources of noise enter them: which views were drawn (and their Monte Carlo noise), and
+which training seed was run (initialisation, batch order), the second shared by every view of a seed. A
+rule that pools all S x V differences as independent, or reads only the spread of the reference, misses
+the seed term and calls differences real far more often than its nominal rate.
+
+The model here is the balanced one-way random-effects model d[s, v] = mu + a_s + e_sv, a_s ~ (0, sa^2)
+between seeds and e_sv ~ (0, se^2) within. Its seed means m_s = mean_v d[s, v] are independent with
+variance sa^2 + se^2 / V, so mu_hat = mean_s m_s with standard error sd(m_s) / sqrt(S) and a Student t
+on S - 1 degrees of freedom is the exact test under normal seed means (the same interval as restricted
+maximum likelihood with Satterthwaite's degrees of freedom on a balanced design). Both noise sources are
+in it; the price of few seeds is a wide t quantile (S = 3: 4.30 instead of 1.96). A hierarchical
+bootstrap (seeds, then views within a seed) estimates the same variance, but with three seeds it sees
+(S - 1) / S of it and has normal tails: a nominal 5 % test would reject a true null with probability
+P(|t_2| > 1.96 sqrt(3/2)), about 14 %.
+
+Across the claims of one report the p-values are adjusted by Holm's step-down procedure, so the chance
+of any false verdict over the family is at most `alpha`.
+
+Verdicts: `supported` (the difference is real and in the direction the claim predicts), `contradicted`
+(real, the other way), `inconclusive` (not shown either way at the family's level), `not testable`
+(fewer than two seeds with data, or the preset cannot run here).
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+from scipy import stats
+
+VERDICTS = ("supported", "contradicted", "inconclusive", "not testable")
+
+
+def _seed_means(diffs) -> np.ndarray:
+    """Seed means (S,) of per-view paired differences: a list of 1-D arrays (one per seed) or (S, V)."""
+    means = []
+    for s, d in enumerate(diffs):
+        v = np.asarray(d, np.float64)
+        if v.ndim != 1 or not len(v):
+            raise ValueError(
+                f"seed_effect: seed {s}: need a non-empty 1-D array of per-view differences, got {v.shape}"
+            )
+        if not np.isfinite(v).all():
+            raise ValueError(f"seed_effect: seed {s}: differences hold NaN/inf")
+        means.append(v.mean())
+    return np.asarray(means)
+
+
+def seed_effect(diffs, level: float = 0.95) -> dict[str, float]:
+    """The mean paired difference and its t interval over seeds. diffs: per seed, the per-view differences
+    preset - reference (same views in each seed). Returns {"diff", "lo", "hi", "p", "se", "seeds",
+    "views"}; with one seed there is no between-seed spread: lo, hi, p and se are NaN."""
+    means = _seed_means(diffs)
+    S = len(means)
+    views = float(np.mean([len(np.asarray(d)) for d in diffs])) if S else 0.0
+    out = {"diff": float(means.mean()) if S else float("nan"), "seeds": float(S), "views": views}
+    if S < 2:
+        return {**out, "lo": float("nan"), "hi": float("nan"), "p": float("nan"), "se": float("nan")}
+    se = float(means.std(ddof=1) / math.sqrt(S))
+    q = float(stats.t.ppf(0.5 + level / 2, S - 1))
+    if se == 0.0:  # every seed the same mean: no spread to test against
+        p = 1.0 if out["diff"] == 0.0 else 0.0
+    else:
+        p = float(2 * stats.t.sf(abs(out["diff"]) / se, S - 1))
+    return {**out, "lo": out["diff"] - q * se, "hi": out["diff"] + q * se, "p": p, "se": se}
+
+
+def holm(pvalues: dict[str, float]) -> dict[str, float]:
+    """Holm-adjusted p-values {name: p_adj} of a family {name: p}; NaN entries (untestable) stay NaN and do
+    not count in the family. Reject a claim at family-wise level alpha when p_adj <= alpha."""
+    tested = sorted((p, name) for name, p in pvalues.items() if math.isfinite(p))
+    m = len(tested)
+    out = {name: float("nan") for name in pvalues}
+    running = 0.0
+    for i, (p, name) in enumerate(tested):
+        running = max(running, min(1.0, (m - i) * p))  # step-down: adjusted p-values never decrease
+        out[name] = running
+    return out
+
+
+def verdict(effect: dict, expected_sign: int, p_adjusted: float, alpha: float = 0.05) -> str:
+    """One claim's verdict from its `seed_effect`, the sign its claim predicts for preset - reference on
+    the metric's scale (+1 or -1) and its Holm-adjusted p-value."""
+    if expected_sign not in (1, -1):
+        raise ValueError(f"verdict: expected_sign must be +1 or -1, got {expected_sign!r}")
+    if effect["seeds"] < 2 or not math.isfinite(p_adjusted):
+        return "not testable"
+    if p_adjusted > alpha:
+        return "inconclusive"
+    return "supported" if np.sign(effect["diff"]) == expected_sign else "contradicted"
+
+
+def power(effect_size: float, seed_sd: float, seeds: int, alpha: float = 0.05) -> float:
+    """Probability that the two-sided t test on `seeds` seed means rejects at level `alpha` when the true
+    mean difference is `effect_size` and the seed means' standard deviation is `seed_sd` (same units)."""
+    if seeds < 2:
+        return float("nan")
+    if not (seed_sd > 0 and math.isfinite(seed_sd)):
+        raise ValueError(f"power: seed_sd must be positive and finite, got {seed_sd}")
+    df = seeds - 1
+    q = stats.t.ppf(1 - alpha / 2, df)
+    nc = effect_size / (seed_sd / math.sqrt(seeds))
+    return float(stats.nct.sf(q, df, nc) + stats.nct.cdf(-q, df, nc))
+
+
+def decide(claims: dict[str, dict], alpha: float = 0.05, level: float = 0.95) -> dict[str, dict]:
+    """Verdicts of a family of claims. claims: {name: {"diffs": per-seed per-view differences (empty when
+    the preset is unavailable), "expected_sign": +1 | -1}}. Returns {name: seed_effect's fields +
+    "p_holm", "verdict"}; the family is every claim with at least two seeds."""
+    effects = {}
+    for name, c in claims.items():
+        diffs = c.get("diffs") or []
+        effects[name] = seed_effect(diffs, level) if diffs else {"diff": float("nan"), "seeds": 0.0, "p": float("nan")}
+    adjusted = holm({name: e["p"] for name, e in effects.items()})
+    return {
+        name: {
+            **e,
+            "p_holm": adjusted[name],
+            "verdict": verdict(e, int(claims[name]["expected_sign"]), adjusted[name], alpha),
+        }
+        for name, e in effects.items()
+    }
