@@ -86,3 +86,13 @@ def publish(name: str, report: dict, plot, device: str = "cpu") -> Path:
     path = write_report(name, report, device)
     plot(report, path.with_suffix(".png"))
     return path
+
+
+def edit_object_cases(view_id: str, cases: list) -> list:
+    """The object cases of one view's `cases` (as `edit.view_context` reads them), checked to come first:
+    the `edit` stage seeds a case by its index in the view's list, so the objects alone keep the seeds it
+    gives them only when no edit is listed before them."""
+    objects = [c for c in cases if c.kind == "object"]
+    if cases[: len(objects)] != objects:
+        raise ValueError(f"{view_id}: edits listed before objects; the seeds would differ from `edit`'s")
+    return objects

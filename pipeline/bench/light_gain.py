@@ -34,7 +34,7 @@ from matplotlib.figure import Figure
 from matplotlib.ticker import NullLocator
 from tqdm import tqdm
 
-from pipeline.bench.common import write_report
+from pipeline.bench.common import edit_object_cases, write_report
 from pipeline.metrics.image import psnr_tonemapped
 
 ROWS = ("lightnet", "scaled_constant")
@@ -112,11 +112,7 @@ def run(overrides: list[str], gains: tuple[float, ...], cases_csv: Path, progres
     for scene, view in tqdm(shared["views"], desc="light gain", unit="view", disable=not progress):
         ctx, cases = edit.view_context(shared, scene, view, cfg, oracle=False)
         v = ctx["view"]
-        objects = [c for c in cases if c.kind == "object"]
-        # a case's seed is its index in the view's list: objects come first (`cases.read_cases`), so the
-        # objects alone keep the seeds the `edit` stage gives them
-        if cases[: len(objects)] != objects:
-            raise ValueError(f"{ctx['id']}: edits listed before objects; the seeds would differ from `edit`'s")
+        objects = edit_object_cases(ctx["id"], cases)
         for res in edit.score_view(ctx, objects, cfg, ROWS):
             case = res["case"]
             rec = {"view": ctx["id"], "label": case.label}

@@ -45,7 +45,7 @@ from matplotlib.figure import Figure
 from omegaconf import OmegaConf
 from tqdm import tqdm
 
-from pipeline.bench.common import write_report
+from pipeline.bench.common import edit_object_cases, write_report
 from pipeline.data.synth import mitsuba_backend as mb
 from pipeline.data.synth.scene import Room
 from pipeline.metrics.bootstrap import paired_bootstrap
@@ -232,10 +232,7 @@ def run(
     for scene, view in tqdm(views, desc="probe resolution", unit="view", disable=not progress):
         ctx, cases = edit.view_context(shared, scene, view, cfg, oracle=False)
         v = ctx["view"]
-        objects = [c for c in cases if c.kind == "object"]
-        # a case's seed is its index in the view's list: objects come first (`cases.read_cases`)
-        if cases[: len(objects)] != objects:
-            raise ValueError(f"{ctx['id']}: edits listed before objects; the seeds would differ from `edit`'s")
+        objects = edit_object_cases(ctx["id"], cases)
         if not objects:
             continue
         room = Room.from_json(json.loads((shared["root"] / scene / "scene.json").read_text()))
