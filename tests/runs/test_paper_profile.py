@@ -4,6 +4,7 @@ layer shapes (recomputed here from those shapes), and the profile runs one step 
 micro-sized data on a CPU."""
 
 import re
+import shutil
 
 import numpy as np
 import pytest
@@ -192,3 +193,4 @@ def test_paper_profile_runs_one_step_of_every_stage_on_micro_data(tmp_path):
     assert np.isfinite(ev["finetuned/synthetic/normal_angle_deg"])
     assert np.isfinite(ev["trained/synthetic_ood/gate/mean_material/roughness_mse"])
     assert np.isfinite(ev["lightnet/synthetic_ood/render_psnr"])
+    shutil.rmtree(tmp_path / "outputs")  # about 5 GB of paper-sized weights and checkpoints: free the disk now
