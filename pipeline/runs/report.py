@@ -36,6 +36,7 @@ from pipeline.tracking.results_page import render as render_results
 # (key, label, higher is better) of the table's columns
 LIGHT_COLUMNS = [
     ("test/render_psnr", "re-render PSNR", True),
+    ("test/glossy_render_psnr", "glossy re-render PSNR", True),
     ("test/surf_light_log_l1", "surface log-L1", False),
     ("test/free_light_log_l1", "free log-L1", False),
     ("edit/insert/mirror/lightnet/psnr", "mirror ins. PSNR", True),
@@ -62,6 +63,7 @@ def read_runs(ablate_dir: Path) -> dict[str, dict[int, dict]]:
         data = {name: json.loads(f.read_text()) if f.is_file() else {} for name, f in files.items()}
         worst = folder / "worst_views.json"
         data["worst_views"] = json.loads(worst.read_text()) if worst.is_file() else []
+        data["figures"] = sorted(p.name for p in folder.glob("*.png"))
         runs.setdefault(data["preset"]["name"], {})[int(data["preset"]["seed"])] = data
     if not runs:
         raise FileNotFoundError(f"{ablate_dir}: no ablation run folders (run the ablate stage first)")
@@ -105,34 +107,42 @@ def expected_sign(expect: dict) -> int:
     return 1 if preset_higher else -1
 
 
-def claim_verdicts(runs: dict, alpha: float = 0.05) -> dict[str, dict]:
-    """Every preset with a paper claim, tested on its claim's metric against its reference, as one family
-    (Holm): {preset: compare()'s fields + "p_holm", "verdict", "metric", "effect_size", "power"}. A preset
-    that did not run here (unavailable) or has fewer than two seeds is `not testable`. `power`: the
-    probability of a verdict at the family's strictest level (alpha / number of testable claims) if the
-    true difference were `effect_size` (0.5 dB on a PSNR, else 5 % of the reference's mean) and the seeds
-    spread as observed."""
+def expectations(preset: dict) -> list[dict]:
+    """A preset's claim metrics (`expect`: one {metric, higher_is_better, holds_if} or a list of them);
+    [] for a preset without a paper claim."""
+    if not preset.get("claim") or not preset.get("expect"):
+        return []
+    e = preset["expect"]
+    return list(e) if isinstance(e, list) else [e]
+
+
+def claim_verdicts(runs: dict, alpha: float = 0.05) -> dict[tuple[str, str], dict]:
+    """Every (preset, claim metric) of every preset with a paper claim, tested against the preset's
+    reference as one family (Holm): {(preset, metric): compare()'s fields + "p_holm", "verdict", "metric",
+    "effect_size", "power"}. A preset that did not run here (unavailable) or has fewer than two seeds is
+    `not testable`. `power`: the probability of a verdict at the family's strictest level (alpha / number
+    of testable hypotheses) if the true difference were `effect_size` (0.5 dB on a PSNR, else 5 % of the
+    reference's mean) and the seeds spread as observed."""
     claims, found = {}, {}
     for name, seeds in runs.items():
         first = seeds[next(iter(seeds))]["preset"]
-        if not first.get("claim") or not first.get("expect"):
-            continue
-        e = first["expect"]
         unavailable = any("unavailable" in d["preset"] for d in seeds.values())
-        c = {"seeds": 0, "diffs": []} if unavailable else compare(runs, name, first["reference"], e["metric"])
-        found[name] = (c, e)
-        claims[name] = {"diffs": [np.array([d]) for d in c["diffs"]], "expected_sign": expected_sign(e)}
+        for e in expectations(first):
+            c = {"seeds": 0, "diffs": []} if unavailable else compare(runs, name, first["reference"], e["metric"])
+            key = f"{name}:{e['metric']}"
+            found[key] = (name, c, e)
+            claims[key] = {"diffs": [np.array([d]) for d in c["diffs"]], "expected_sign": expected_sign(e)}
     decided = decide(claims, alpha)
     testable = sum(1 for d in decided.values() if d["seeds"] >= 2)
     out = {}
-    for name, d in decided.items():
-        c, e = found[name]
+    for key, d in decided.items():
+        name, c, e = found[key]
         size = POWER_DB if e["metric"].endswith("psnr") else POWER_SHARE * abs(c.get("reference_mean", float("nan")))
         sd = d.get("se", float("nan")) * math.sqrt(d["seeds"]) if d["seeds"] >= 2 else float("nan")
         pw = (
             power(size, sd, int(d["seeds"]), alpha / max(testable, 1)) if math.isfinite(sd) and sd > 0 else float("nan")
         )
-        out[name] = {**c, **d, "metric": e["metric"], "effect_size": size, "power": pw}
+        out[(name, e["metric"])] = {**c, **d, "metric": e["metric"], "effect_size": size, "power": pw}
     return out
 
 
@@ -157,21 +167,11 @@ def _interval(c: dict) -> str:
 
 
 def table(runs: dict, stage: str, columns: list) -> tuple[list[str], dict[str, float]]:
-    """Markdown rows of one stage's presets and the numbers behind them; the claim verdicts are decided
-    over every claim in `runs` as one family."""
+    """Markdown rows of one stage's presets (means over seeds ± half their range) and the numbers behind
+    them; `vs reference`: each preset minus its reference on the first column's metric, seed by seed."""
     lines, numbers = [], {}
-    verdicts = claim_verdicts(runs)
-    header = [
-        "preset",
-        "changes",
-        "seeds",
-        *[c[1] for c in columns],
-        "s/image",
-        "train min",
-        "vs reference (95 % t interval over seeds)",
-        "paper claim",
-        "verdict",
-    ]
+    header = ["preset", "changes", "seeds", *[c[1] for c in columns], "s/image", "train min"]
+    header.append(f"vs reference: {columns[0][1]} (95 % t interval over seeds)")
     lines.append("| " + " | ".join(header) + " |")
     lines.append("|" + "---|" * len(header))
     for name in sorted(runs, key=lambda n: (n != runs[n][next(iter(runs[n]))]["preset"].get("reference"), n)):
@@ -181,11 +181,8 @@ def table(runs: dict, stage: str, columns: list) -> tuple[list[str], dict[str, f
             continue
         if any("unavailable" in d["preset"] for d in seeds.values()):
             why = next(d["preset"]["unavailable"] for d in seeds.values())
-            lines.append(
-                f"| {name} | {first['changes']} | 0 | "
-                + " | ".join(["-"] * (len(columns) + 2))
-                + f" | unavailable: {why} | {first.get('claim', '')} | not run |"
-            )
+            dashes = " | ".join(["-"] * (len(columns) + 2))
+            lines.append(f"| {name} | {first['changes']} | 0 | {dashes} | unavailable: {why} |")
             continue
         cells = []
         for key, _, _ in columns:
@@ -195,27 +192,38 @@ def table(runs: dict, stage: str, columns: list) -> tuple[list[str], dict[str, f
             cells.append(_fmt(mean, half))
         for key in ("seconds_per_image", "train_minutes"):
             vals = [d["timings"].get(key, float("nan")) for d in seeds.values()]
-            mean, half = spread(vals)
-            cells.append(_fmt(mean, half))
-        ref = first.get("reference", "")
-        versus, status = "", ""
-        if name in verdicts:
-            v = verdicts[name]
-            versus = f"{v['metric']}: {_interval(v)}"
-            status = f"{v['verdict']} (Holm p {_p(v['p_holm'])}; power {_p(v['power'])} at {v['effect_size']:.3g})"
-            numbers[f"{name}/vs_reference/{v['metric']}"] = float(v["diff"])
-            for field in ("lo", "hi", "p_holm", "power"):
-                numbers[f"{name}/vs_reference/{v['metric']}/{field}"] = float(v.get(field, float("nan")))
-        elif name != ref:
-            key = first.get("expect", {}).get("metric", columns[0][0])
-            c = compare(runs, name, ref, key)
-            versus = f"{key}: {_interval(c)}"
-            numbers[f"{name}/vs_reference/{key}"] = float(c["diff"])
+            cells.append(_fmt(*spread(vals)))
+        ref, versus = first.get("reference", ""), ""
+        if name != ref:
+            c = compare(runs, name, ref, columns[0][0])
+            versus = _interval(c)
+            numbers[f"{name}/vs_reference/{columns[0][0]}"] = float(c["diff"])
+        lines.append(f"| {name} | {first['changes']} | {len(seeds)} | " + " | ".join(cells) + f" | {versus} |")
+    return lines, numbers
+
+
+def claims_table(runs: dict) -> tuple[list[str], dict[str, float]]:
+    """One row per paper claim and metric (`claim_verdicts`, one Holm family): the claim and its source,
+    the preset, the metric, the preset minus its reference with the 95 % t interval over seeds and each
+    seed's difference, the verdict, Holm's p and the power at the stated effect size; and the numbers."""
+    verdicts = claim_verdicts(runs)
+    lines = [
+        "| paper claim | preset | metric | preset - reference (95 % t interval over seeds) | verdict | Holm p "
+        "| power at effect |",
+        "|---|---|---|---|---|---|---|",
+    ]
+    numbers = {}
+    for (name, metric), v in sorted(verdicts.items()):
+        first = runs[name][next(iter(runs[name]))]["preset"]
+        claim = f"{first['claim']} ({first.get('source', '')})"
+        versus = _interval(v) if v["seeds"] else "not run"
         lines.append(
-            f"| {name} | {first['changes']} | {len(seeds)} | "
-            + " | ".join(cells)
-            + f" | {versus} | {first.get('claim', '')} | {status} |"
+            f"| {claim} | {name} | {metric} | {versus} | {v['verdict']} | {_p(v['p_holm'])} "
+            f"| {_p(v['power'])} at {v['effect_size']:.3g} |"
         )
+        numbers[f"{name}/vs_reference/{metric}"] = float(v["diff"])
+        for field in ("lo", "hi", "p_holm", "power"):
+            numbers[f"{name}/vs_reference/{metric}/{field}"] = float(v.get(field, float("nan")))
     return lines, numbers
 
 
@@ -250,12 +258,13 @@ def threshold_runs(runs: dict, reference: str = "full") -> dict[str, dict[int, d
     return derived
 
 
-def stability(runs: dict) -> list[str]:
+def stability(runs: dict, figures: str = "../ablate") -> list[str]:
     """Per preset: non-finite training losses and test metrics, diverged runs, unavailable runs, and the
-    five test views LightNet renders worst (first seed; insertion PSNR, the scaled constant's beside)."""
+    five test views LightNet renders worst (first seed; insertion PSNR, the scaled constant's beside),
+    linked to that run's `worst_views.png` (`figures`: the ablation runs' folder relative to the page)."""
     lines = [
         "| preset | seeds | non-finite train losses | non-finite test metrics | diverged runs | unavailable "
-        "| worst views (LightNet / scaled constant insertion PSNR, dB) |",
+        "| worst views (LightNet / scaled constant insertion PSNR, dB; first seed) |",
         "|---|---|---|---|---|---|---|",
     ]
     for name, seeds in sorted(runs.items()):
@@ -268,6 +277,8 @@ def stability(runs: dict) -> list[str]:
         worst = "; ".join(
             f"{w['view']} {w['lightnet_psnr']:.1f}/{w['scaled_constant_psnr']:.1f}" for w in ds[0]["worst_views"]
         )
+        if worst:
+            worst += f" ([figure]({figures}/{name}-s{ds[0]['preset']['seed']}/worst_views.png))"
         lines.append(
             f"| {name} | {len(ds)} | {total('health/nonfinite_train_losses')} | "
             f"{total('health/nonfinite_test_metrics')} | {total('health/diverged')} | {unavailable} | {worst} |"
@@ -276,33 +287,48 @@ def stability(runs: dict) -> list[str]:
 
 
 def pareto_points(runs: dict) -> list[dict]:
-    """One point per LightNet preset (means over seeds) and per test-time threshold of `full`
-    (`threshold_runs`: no training minutes or insertion, so those panels leave them out)."""
+    """One point per LightNet preset (means over seeds, and half the seeds' range as `<key>_err`) and per
+    test-time threshold of `full` (`threshold_runs`: no training minutes or insertion, so those panels
+    leave them out; nor a render-time preset's training minutes: it trains nothing)."""
     points = []
     for name, seeds in sorted({**runs, **threshold_runs(runs)}.items()):
         ds = list(seeds.values())
         if ds[0]["preset"]["stage"] != "train_lighting" or "unavailable" in ds[0]["preset"]:
             continue
-
-        def mean(source, key, ds=ds):
-            vals = [d[source].get(key, float("nan")) for d in ds]
-            return float(np.mean(vals))
-
-        points.append(
-            {
-                "label": name,
-                "seconds": mean("timings", "seconds_per_image"),
-                "train_minutes": mean("timings", "train_minutes"),
-                "insertion_psnr": mean("metrics", "edit/insert/all/lightnet/psnr"),
-                "render_psnr": mean("metrics", "test/render_psnr"),
-            }
-        )
+        point = {"label": name, "seeds": len(ds)}
+        for field, source, key in (
+            ("seconds", "timings", "seconds_per_image"),
+            ("train_minutes", "timings", "train_minutes"),
+            ("insertion_psnr", "metrics", "edit/insert/all/lightnet/psnr"),
+            ("render_psnr", "metrics", "test/render_psnr"),
+        ):
+            point[field], point[f"{field}_err"] = spread([d[source].get(key, float("nan")) for d in ds])
+        points.append(point)
     return points
 
 
-def ablation_tables(light_rows: list[str], mat_rows: list[str], runs: dict) -> list[str]:
-    """The ablation tables as docs/results.md embeds them (the same rows as ablations.md)."""
+def ablation_tables(
+    light_rows: list[str], mat_rows: list[str], claim_rows: list[str], runs: dict, figures: str
+) -> list[str]:
+    """The ablation tables as docs/results.md embeds them (the same rows as ablations.md; `figures`: the
+    ablation runs' folder relative to the page)."""
+    layers = [
+        f"[{name}, seed {seed}]({figures}/{name}-s{seed}/layers.png)"
+        for name, seeds in sorted(runs.items())
+        for seed, d in sorted(seeds.items())
+        if "layers.png" in d.get("figures", [])
+    ]
     return [
+        "Intervals in these tables are 95 % t intervals over seeds of the paired (same seed, same test views)",
+        "differences; verdicts are Holm-adjusted over every claim's metrics (`pipeline/metrics/verdicts.py`).",
+        "",
+        "### Paper claims",
+        "",
+        *claim_rows,
+        "",
+        "The paper's fig. 4 (the same weights under the MC layer and under a changed layer, glossy crops "
+        "beside the photo): " + (", ".join(layers) if layers else "no render-time preset ran") + ".",
+        "",
         "### LightNet",
         "",
         *light_rows,
@@ -313,7 +339,7 @@ def ablation_tables(light_rows: list[str], mat_rows: list[str], runs: dict) -> l
         "",
         "### Stability",
         "",
-        *stability(runs),
+        *stability(runs, figures),
     ]
 
 
@@ -322,7 +348,9 @@ def results_markdown(reports: Path, ablate_dir: Path, profile: str) -> str:
     runs = read_runs(ablate_dir)
     light_rows, _ = table({**runs, **threshold_runs(runs)}, "train_lighting", LIGHT_COLUMNS)
     mat_rows, _ = table(runs, "train_material", MATERIAL_COLUMNS)
-    return render_results(reports, ablation_tables(light_rows, mat_rows, runs), profile)
+    claim_rows, _ = claims_table(runs)
+    tables = ablation_tables(light_rows, mat_rows, claim_rows, runs, "../reports/ablate")
+    return render_results(reports, tables, profile)
 
 
 def figure_links(reports: Path, out: Path) -> list[str]:
@@ -343,40 +371,42 @@ def run(cfg: DictConfig) -> dict[str, float]:
     out.mkdir(parents=True, exist_ok=True)
     light_rows, light_numbers = table({**runs, **threshold_runs(runs)}, "train_lighting", LIGHT_COLUMNS)
     mat_rows, mat_numbers = table(runs, "train_material", MATERIAL_COLUMNS)
+    claim_rows, claim_numbers = claims_table(runs)
     doc = [
         f"# Ablations ({cfg.profile_name})",
         "",
-        "Means over seeds ± half their range. `vs reference`: the preset minus its reference on the claim's",
-        "metric (same seed, same data, same schedule, same test views), the mean over seeds with its 95 % t",
-        "interval over the seeds' differences (both the seeds' and the views' noise are in it), and each",
-        "seed's difference. Verdicts (`pipeline/metrics/verdicts.py`): the claims form one family, tested",
-        "at 5 % family-wise by Holm's procedure: supported, contradicted, inconclusive, or not testable",
-        "(fewer than 2 seeds, or the preset cannot run here); `power`: the chance of a verdict if the true",
-        "difference were the stated size (0.5 dB on a PSNR, else 5 % of the reference's mean) with the seed",
-        "spread observed.",
-        "s/image: median seconds of a full-frame re-render at the evaluation spp on this machine.",
-        "`full:out_threshold_t`: `full`'s own weights tested with the out-of-view branch queried only where",
-        "u >= t (no training and no insertion at a threshold), paired with `full` seed by seed.",
+        "Each preset changes one thing against its reference (`full` for LightNet, `material_small` for",
+        "MaterialNet) on the same seed, data, schedule and test views; a render-time preset",
+        "(`no_mc_render`, `uniform_render`) scores `full`'s own weights with another render layer.",
+        "Paper claims: the preset minus its reference on each metric the claim is about, the mean over",
+        "seeds with its 95 % t interval over the seeds' differences (both the seeds' and the views' noise",
+        "are in it) and each seed's difference. Verdicts (`pipeline/metrics/verdicts.py`): every claim",
+        "metric is one hypothesis of one family, tested at 5 % family-wise by Holm's procedure: supported,",
+        "contradicted, inconclusive, or not testable (fewer than 2 seeds, or the preset cannot run here);",
+        "`power`: the chance of a verdict if the true difference were the stated size (0.5 dB on a PSNR,",
+        "else 5 % of the reference's mean) with the seed spread observed.",
+        "Preset tables: means over seeds ± half their range; s/image: median seconds of a full-frame",
+        "re-render at the evaluation spp on this machine; glossy re-render: the test views' pixels with",
+        "ground-truth roughness at most `glossy.max_roughness` (conf/ablate.yaml).",
+        "`full:out_threshold_t`: `full`'s own weights tested with the",
+        "out-of-view branch queried only where u >= t, paired with `full` seed by seed.",
         "",
-        "## LightNet",
-        *light_rows,
-        "",
-        "## MaterialNet",
-        *mat_rows,
-        "",
-        "## Stability",
-        *stability(runs),
+        *ablation_tables(light_rows, mat_rows, claim_rows, runs, "../ablate")[3:],
     ]
     (out / "ablations.md").write_text("\n".join(doc) + "\n")
     results_doc = Path(cfg.results_doc)
     results_doc.parent.mkdir(parents=True, exist_ok=True)
     results_doc.write_text(results_markdown(reports, Path(cfg.ablate_dir), cfg.profile_name))
     points = pareto_points(runs)
-    figure = pareto_figure(points, out / "pareto.png", title=f"accuracy against speed ({cfg.profile_name})")
+    figure = pareto_figure(
+        points,
+        out / "pareto.png",
+        title=f"accuracy against speed ({cfg.profile_name}); bars: half the range over seeds",
+    )
     summary = ["# Summary", "", "- [ablations.md](ablations.md)", "- [pareto.png](pareto.png)", "", "## Figures"]
     summary += figure_links(reports, out)
     (out / "summary.md").write_text("\n".join(summary) + "\n")
-    metrics = {k: v for k, v in {**light_numbers, **mat_numbers}.items() if math.isfinite(v)}
+    metrics = {k: v for k, v in {**light_numbers, **mat_numbers, **claim_numbers}.items() if math.isfinite(v)}
     metrics["presets"] = float(len(runs))
     metrics["runs"] = float(sum(len(s) for s in runs.values()))
     with stage_run("report", cfg) as run:

@@ -264,8 +264,9 @@ def _label_points(ax, labelled: list[tuple[str, float, float]], fontsize: float 
 
 def pareto_figure(points: list[dict], path: str | Path, title: str = "") -> Path:
     """Accuracy against cost, one labelled dot per point ({label, seconds, train_minutes, insertion_psnr,
-    render_psnr}), the Pareto front as a line: columns insertion PSNR / re-render PSNR, rows against
-    seconds per image / training minutes."""
+    render_psnr}, each optionally with `<key>_err`: the seeds' spread, drawn as error bars), the Pareto
+    front (of the means) as a line: columns insertion PSNR / re-render PSNR, rows against seconds per
+    image / training minutes."""
     fig = Figure(figsize=(12, 9))
     axes = fig.subplots(2, 2)
     labels = []
@@ -280,6 +281,20 @@ def pareto_figure(points: list[dict], path: str | Path, title: str = "") -> Path
             ys = [p[acc] for p in points]
             shown = [i for i in range(len(points)) if np.isfinite(xs[i]) and np.isfinite(ys[i])]
             ax.scatter([xs[i] for i in shown], [ys[i] for i in shown], s=28, color="tab:blue", zorder=3)
+            xerr = [points[i].get(f"{cost}_err", 0.0) for i in shown]
+            yerr = [points[i].get(f"{acc}_err", 0.0) for i in shown]
+            if any(e > 0 for e in xerr + yerr):  # half the seeds' range, where a point has several seeds
+                ax.errorbar(
+                    [xs[i] for i in shown],
+                    [ys[i] for i in shown],
+                    xerr=np.nan_to_num(xerr),
+                    yerr=np.nan_to_num(yerr),
+                    fmt="none",
+                    ecolor="tab:blue",
+                    elinewidth=0.8,
+                    alpha=0.6,
+                    zorder=2,
+                )
             positive = [xs[i] for i in shown if xs[i] > 0]
             if len(positive) == len(shown) and positive and max(positive) > 4 * min(positive):
                 ax.set_xscale("log")  # one slow setting (no_mc) would squeeze every other point into a column

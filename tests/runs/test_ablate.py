@@ -19,12 +19,87 @@ from tests.conftest import CONF, ROOT, compose_cfg, run_stage_process
 PRESETS = sorted(p.stem for p in (CONF / "ablation").glob("*.yaml"))
 
 
-def test_dvc_runs_every_preset_and_only_existing_ones():
+# presets that test no paper claim: a Hydra multirun sweep runs them (README, Ablations), not dvc repro
+SWEEP_ONLY = {"spp_2", "spp_4", "spp_16", "gt_gbuffers", "no_mc", "uniform_sampling"}
+
+
+def _preset_file(name: str) -> dict:
     import yaml
 
-    listed = {v["preset"] for v in yaml.safe_load((ROOT / "params.yaml").read_text())["ablations"].values()}
-    assert listed == set(PRESETS)
-    assert {"full", "no_mc", "no_rerender_loss", "out_of_view_only", "ssrt_only", "gt_gbuffers"} <= listed
+    return yaml.safe_load((CONF / "ablation" / f"{name}.yaml").read_text())
+
+
+def test_dvc_runs_every_claim_at_enough_seeds_and_only_existing_presets():
+    import yaml
+
+    entries = yaml.safe_load((ROOT / "params.yaml").read_text())["ablations"]
+    listed = {v["preset"] for v in entries.values()}
+    assert listed | SWEEP_ONLY == set(PRESETS) and not listed & SWEEP_ONLY
+    for name in PRESETS:
+        meta = _preset_file(name)["preset"]
+        seeds = sorted(v["seed"] for v in entries.values() if v["preset"] == name)
+        if meta.get("claim") or name in ("full", "material_small"):  # claims and the references they need
+            lighting = "common/lighting" in _preset_file(name)["defaults"]
+            assert seeds == list(range(3 if lighting else 2)), (name, seeds)
+        else:
+            assert name in SWEEP_ONLY or name == "material_resnet34", name
+    for key, v in entries.items():
+        assert key == f"{v['preset']}-s{v['seed']}"
+        render_time = _preset_file(v["preset"])["preset"].get("weights_from")
+        # a render-time preset waits for (and re-runs after) the weights it scores
+        assert v["needs"] == (
+            f"outputs/ablate/full-s{v['seed']}" if render_time else f"conf/ablation/{v['preset']}.yaml"
+        )
+
+
+def _flat(d: dict, prefix: str = "") -> dict:
+    out = {}
+    for k, v in d.items():
+        out.update(_flat(v, f"{prefix}{k}.") if isinstance(v, dict) else {f"{prefix}{k}": v})
+    return out
+
+
+# what each preset changes against its reference, as resolved config keys (its `preset.` metadata aside)
+ONE_CHANGE = {
+    "full": set(),
+    "material_small": set(),
+    "gt_gbuffers": {"gbuffers"},
+    "material_perceptual": {"loss.perceptual_weights"},
+    "material_resnet34": {"model.material_net.backbone", "model.material_net.decoder_widths"},  # one backbone
+    "no_mc": {"render.estimator"},  # training only: scored with the reference's layer
+    "no_mc_render": {"scoring.render"},  # evaluation only: `full`'s weights
+    "uniform_sampling": {"render.estimator"},
+    "uniform_render": {"scoring.render"},
+    "no_rerender_loss": {"lighting.render_weight"},
+    "rerender_only": {"lighting.light_weight"},
+    "out_of_view_only": {"model.light_net.mode"},
+    "ssrt_only": {"model.light_net.mode"},
+    "spp_2": {"render.spp"},
+    "spp_4": {"render.spp"},
+    "spp_16": {"render.spp"},
+}
+
+
+@pytest.mark.parametrize("profile", ["tiny", "paper"])
+def test_every_preset_changes_one_thing_against_its_reference(profile, monkeypatch):
+    from omegaconf import OmegaConf
+
+    from pipeline.runs.ablate import preset_stage
+
+    monkeypatch.setenv("INVRENDER_VGG16_WEIGHTS", "/weights/vgg16.pth")  # the perceptual preset's one change
+    assert set(ONE_CHANGE) == set(PRESETS), "a new preset: say what it changes"
+
+    def resolved(stage, preset):
+        return _flat(
+            OmegaConf.to_container(compose_cfg(stage, [f"ablation={preset}", f"profile={profile}"]), resolve=True)
+        )
+
+    for name in PRESETS:
+        stage = preset_stage(name)
+        mine = resolved(stage, name)
+        ref = resolved(stage, mine["preset.reference"])
+        changed = {k for k in set(mine) | set(ref) if not k.startswith("preset.") and mine.get(k) != ref.get(k)}
+        assert changed == ONE_CHANGE[name], (name, changed)
 
 
 def _vgg16_weights(path: Path, layers) -> Path:
@@ -118,37 +193,62 @@ def test_ablate_stage_and_hydra_multirun_give_the_same_metrics(pipeline_outputs,
     from pipeline.runs.ablate import run
 
     reports = tmp_path / "reports"
-    cfg = compose_cfg(
-        "ablate",
-        [
-            "profile=micro",
-            "preset=full",
-            "seed=0",
-            f"paths.outputs={pipeline_outputs}",
-            f"paths.reports={reports}",
-            "progress=false",
-            "timing_views=1",
-            "bootstrap=50",
-            "tracking.experiment=test-ablate",
-        ],
-    )
-    metrics = run(cfg)
+    cfg_overrides = [
+        "profile=micro",
+        "preset=full",
+        "seed=0",
+        f"paths.outputs={pipeline_outputs}",
+        f"paths.reports={reports}",
+        "progress=false",
+        "timing_views=1",
+        "bootstrap=50",
+        "tracking.experiment=test-ablate",
+    ]
+    metrics = run(compose_cfg("ablate", cfg_overrides))
     folder = reports / "ablate" / "full-s0"
     assert json.loads((folder / "metrics.json").read_text()) == pytest.approx(metrics)
     timings = json.loads((folder / "timings.json").read_text())
     assert timings["seconds_per_image"] > 0 and timings["train_minutes"] > 0
-    phases = ("train_minutes", "timing_minutes", "test_time_thresholds_minutes", "insertion_minutes")
+    phases = ("train_minutes", "scoring_minutes", "timing_minutes", "test_time_thresholds_minutes", "insertion_minutes")
     assert all(timings[k] > 0 for k in phases) and sum(timings[k] for k in phases) <= timings["stage_minutes"]
     assert {"out_threshold_0.5/seconds_per_image", "out_threshold_0.9/seconds_per_image"} <= set(timings)
     assert "edit/insert/all/lightnet/psnr" in metrics and "out_threshold_0.9/test/render_psnr" in metrics
     assert metrics["health/diverged"] == 0.0 and metrics["health/logged_train_losses"] > 0
     assert len(json.loads((folder / "worst_views.json").read_text())) >= 1
     assert (folder / "insertion_scatter.png").stat().st_size > 10_000
+    assert (folder / "worst_views.png").stat().st_size > 10_000
+    assert metrics["test/glossy_views"] >= 1 and np.isfinite(metrics["test/glossy_render_psnr"])
     [ablate_run] = mlflow.search_runs(
         experiment_names=["test-ablate"], filter_string="tags.preset = 'full'", output_format="list"
     )
     logged = [a.path for a in mlflow.MlflowClient().list_artifacts(ablate_run.info.run_id, "figures")]
-    assert logged == ["figures/insertion_scatter.png"]
+    assert logged == ["figures/insertion_scatter.png", "figures/worst_views.png"]
+
+    # a render-time preset: `full`'s weights (nothing trained) under Li's layer; the light errors are the
+    # network's alone, so they equal full's, while everything rendered changes
+    render_cfg = compose_cfg("ablate", [o.replace("preset=full", "preset=no_mc_render") for o in cfg_overrides])
+    rendered = run(render_cfg)
+    render_out = pipeline_outputs / "ablate" / "no_mc_render-s0"
+    assert json.loads((render_out / "weights.json").read_text())["weights"] == str(
+        pipeline_outputs / "ablate" / "full-s0" / "model.pt"
+    )
+    assert not (render_out / "checkpoints").exists() and "train_minutes" not in json.loads(
+        (reports / "ablate" / "no_mc_render-s0" / "timings.json").read_text()
+    )
+    for key in ("test/surf_light_log_l1", "test/free_light_log_l1"):
+        assert rendered[key] == pytest.approx(metrics[key], rel=1e-6)
+    # scored with Li's layer (micro's barely trained network renders near black under either layer, so
+    # the scores themselves need not differ here)
+    from pipeline.runs.ablate import scoring_config, stage_config
+
+    assert scoring_config(render_cfg, stage_config(render_cfg)).render.estimator == "li2020"
+    assert np.isfinite(rendered["test/render_psnr"]) and np.isfinite(rendered["test/glossy_render_psnr"])
+    assert (reports / "ablate" / "no_mc_render-s0" / "layers.png").stat().st_size > 10_000
+    missing = compose_cfg(
+        "ablate", [o.replace("seed=0", "seed=5").replace("preset=full", "preset=no_mc_render") for o in cfg_overrides]
+    )
+    with pytest.raises(FileNotFoundError, match="full-s5/model.pt is missing"):
+        run(missing)
 
     run_stage_process(
         "train_lighting",
@@ -172,12 +272,13 @@ def test_ablate_stage_and_hydra_multirun_give_the_same_metrics(pipeline_outputs,
     )
     out = reports / "report"
     table = (out / "ablations.md").read_text()
-    assert "| full |" in table and "## Stability" in table and numbers["runs"] == 1.0
+    assert "| full |" in table and "### Stability" in table and numbers["runs"] == 2.0
+    assert "no_mc_render-s0/layers.png" in table and "full-s0/worst_views.png" in table
     assert (out / "pareto.png").stat().st_size > 10_000 and "pareto.png" in (out / "summary.md").read_text()
     runs = mlflow.search_runs(experiment_names=["test-ablate"], output_format="list")
     [parent] = [r for r in runs if r.info.run_name == "ablate-micro" and r.data.tags.get("sweep") == "true"]
-    [child] = [r for r in runs if r.data.tags.get("preset") == "full"]
-    assert child.data.tags["mlflow.parentRunId"] == parent.info.run_id
+    children = [r for r in runs if r.data.tags.get("preset") in ("full", "no_mc_render")]
+    assert len(children) == 2 and all(c.data.tags["mlflow.parentRunId"] == parent.info.run_id for c in children)
 
 
 def _fake_runs(tmp_path: Path, values: dict[tuple[str, int], float]) -> Path:
@@ -198,7 +299,7 @@ def _fake_runs(tmp_path: Path, values: dict[tuple[str, int], float]) -> Path:
 
 
 def test_report_verdicts_are_tested_over_seeds_as_one_family(tmp_path):
-    from pipeline.runs.report import claim_verdicts, compare, expected_sign, read_runs, table
+    from pipeline.runs.report import claim_verdicts, claims_table, compare, expected_sign, read_runs
 
     values = {("full", s): 20.0 + 0.2 * s for s in range(3)}
     values.update({("no_mc", s): 19.0 + 0.2 * s + 0.01 * s * s for s in range(3)})  # -1.0, -0.99, -0.96
@@ -208,25 +309,53 @@ def test_report_verdicts_are_tested_over_seeds_as_one_family(tmp_path):
     c = compare(runs, "no_mc", "full", "test/render_psnr")
     assert c["seeds"] == 3 and c["diff"] == pytest.approx(-0.9833, abs=1e-3) and c["hi"] < 0
     v = claim_verdicts(runs)
-    assert v["no_mc"]["verdict"] == "supported"  # the claim: the reference better, and it is
-    assert v["spp_2"]["verdict"] == "inconclusive"
+    key = "test/render_psnr"
+    assert v["no_mc", key]["verdict"] == "supported"  # the claim: the reference better, and it is
+    assert v["spp_2", key]["verdict"] == "inconclusive"
     # two seeds exactly +0.5 apart from the reference: no spread, p = 0, yet the claim says worse
-    assert v["ssrt_only"]["verdict"] == "contradicted"
-    assert v["no_mc"]["p_holm"] >= v["no_mc"]["p"]  # adjusted over the family of three claims
-    assert 0 < v["spp_2"]["power"] < 1 and v["no_mc"]["effect_size"] == 0.5
+    assert v["ssrt_only", key]["verdict"] == "contradicted"
+    assert v["no_mc", key]["p_holm"] >= v["no_mc", key]["p"]  # adjusted over the family of three claims
+    assert 0 < v["spp_2", key]["power"] < 1 and v["no_mc", key]["effect_size"] == 0.5
     assert expected_sign({"higher_is_better": False, "holds_if": "reference_better"}) == 1
     with pytest.raises(ValueError, match="holds_if"):
         expected_sign({"higher_is_better": True, "holds_if": ""})
-    rows, numbers = table(runs, "train_lighting", [("test/render_psnr", "re-render", True)])
-    assert any("| no_mc |" in r and "supported (Holm p" in r for r in rows)
+    rows, numbers = claims_table(runs)
+    assert any("| no_mc | test/render_psnr |" in r and "| supported |" in r for r in rows)
     assert numbers["no_mc/vs_reference/test/render_psnr/hi"] < 0
+
+
+def test_a_claim_with_several_metrics_tests_each_in_the_family(tmp_path):
+    from pipeline.runs.report import claim_verdicts, claims_table, read_runs
+
+    values = {("full", s): 20.0 + 0.2 * s for s in range(3)}
+    values.update({("no_mc", s): 19.0 + 0.2 * s + 0.01 * s * s for s in range(3)})
+    root = _fake_runs(tmp_path, values)
+    psnr = {"higher_is_better": True, "holds_if": "reference_better"}
+    for s in range(3):  # a second metric on which the preset equals the reference (+-0.1 over seeds)
+        folder = root / f"no_mc-s{s}"
+        meta = json.loads((folder / "preset.json").read_text())
+        meta["expect"] = [{"metric": "test/render_psnr", **psnr}, {"metric": "test/glossy_render_psnr", **psnr}]
+        (folder / "preset.json").write_text(json.dumps(meta))
+        for preset, g in (("no_mc", 15.0 + (0.1, -0.1, 0.05)[s]), ("full", 15.0)):
+            path = root / f"{preset}-s{s}" / "metrics.json"
+            path.write_text(json.dumps({**json.loads(path.read_text()), "test/glossy_render_psnr": g}))
+    single = claim_verdicts(read_runs(_fake_runs(tmp_path / "one", values)))
+    v = claim_verdicts(read_runs(root))
+    assert set(v) == {("no_mc", "test/render_psnr"), ("no_mc", "test/glossy_render_psnr")}
+    assert v["no_mc", "test/glossy_render_psnr"]["verdict"] == "inconclusive"
+    assert v["no_mc", "test/render_psnr"]["verdict"] == "supported"
+    # two hypotheses in the family: Holm multiplies the smaller p by 2
+    first = single["no_mc", "test/render_psnr"]
+    assert v["no_mc", "test/render_psnr"]["p_holm"] == pytest.approx(min(1.0, 2 * first["p"]))
+    rows, _ = claims_table(read_runs(root))
+    assert sum("| no_mc |" in r for r in rows) == 2
 
 
 def test_a_claim_with_one_seed_is_not_testable(tmp_path):
     from pipeline.runs.report import claim_verdicts, read_runs
 
     runs = read_runs(_fake_runs(tmp_path, {("full", 0): 20.0, ("no_mc", 0): 19.0}))
-    assert claim_verdicts(runs)["no_mc"]["verdict"] == "not testable"
+    assert claim_verdicts(runs)["no_mc", "test/render_psnr"]["verdict"] == "not testable"
 
 
 def test_report_refuses_a_run_folder_missing_its_metrics(tmp_path):
