@@ -10,9 +10,9 @@ render layer (`scoring.render`), so the layer is the only difference.
   `glossy.max_roughness`), the insertion and editing scores of the `edit` stage for the preset's LightNet
   and the exposure-scaled constant on the same cases (paired; a preset trained on ground-truth G-buffers
   adds the `lightnet_gt_gbuffers` row), the median seconds of a full-frame re-render at the evaluation
-  spp over `timing_views` test images, and for the `full` preset the test metrics and seconds at each
-  test-time out-of-view threshold (`test_time_thresholds`: the out-of-view branch queried only where
-  u >= t);
+  spp over `timing_views` test images, and for the `full` preset at `test_time_threshold_seeds` the
+  test metrics and seconds at each test-time out-of-view threshold (`test_time_thresholds`: the
+  out-of-view branch queried only where u >= t);
 - the wall minutes of the training stage (fit, validation and test passes; none for a render-time
   preset) and of each scoring step (`scoring_`, `timing_`, `test_time_thresholds_`, `insertion_minutes`),
   and of the whole run (`stage_minutes`).
@@ -23,12 +23,12 @@ A preset that needs something absent here (`preset.requires`, e.g. VGG16 weights
 Writes `outputs/ablate/<preset>-s<seed>/` (the stage's checkpoints and export; a render-time preset's
 `weights.json` names the export it scored and its SHA-256) and
 `reports/ablate/<preset>-s<seed>/{metrics.json, timings.json, preset.json}` (LightNet presets also
-`worst_views.json`, `worst_views.png` (each worst view's worst case: photo, Mitsuba, LightNet, scaled
-constant) and `insertion_scatter.png`, every case's PSNR against the scaled constant's; a preset scored
-with another layer than it trained with, `layers.png`: the paper's fig. 4 on the test view with the most
-glossy pixels); the stage's own report goes to `.../stage/`. One MLflow run `ablate-<profile>` per
-preset and seed (tags preset, seed) holds them, its figures under `figures/` (a MaterialNet preset's
-test maps), with the training stage's run nested in it.
+`worst_views.json`, at `worst_view_figure_seeds` `worst_views.png` (each worst view's worst case:
+photo, Mitsuba, LightNet, scaled constant), and `insertion_scatter.png`, every case's PSNR against the
+scaled constant's; a preset scored with another layer than it trained with, `layers.png`: the paper's
+fig. 4 on the test view with the most glossy pixels); the stage's own report goes to `.../stage/`. One
+MLflow run `ablate-<profile>` per preset and seed (tags preset, seed) holds them, its figures under
+`figures/` (a MaterialNet preset's test maps), with the training stage's run nested in it.
 """
 
 from __future__ import annotations
@@ -194,7 +194,8 @@ def lighting_extras(
     timings["seconds_per_image"] = seconds_per_image(system, views, base)
     timings["timing_minutes"] = (time.perf_counter() - t0) / 60.0
     t0 = time.perf_counter()
-    if str(cfg.preset) == "full":  # the out-of-view branch queried only where SSRT is unsure (u >= t)
+    if str(cfg.preset) == "full" and int(cfg.seed) in cfg.test_time_threshold_seeds:
+        # the out-of-view branch queried only where SSRT is unsure (u >= t)
         for t in cfg.test_time_thresholds:
             if float(t) == base:  # the preset's own threshold: its stage's test pass already scored it
                 continue
@@ -225,7 +226,7 @@ def lighting_extras(
     worst = worst_views(records, int(cfg.worst_views))
     report = Path(cfg.report_dir)
     figures = [insertion_figure(records, report / "insertion_scatter.png", f"{cfg.preset}, seed {cfg.seed}")]
-    if worst:
+    if worst and int(cfg.seed) in cfg.worst_view_figure_seeds:
         name = f"{cfg.preset}, seed {cfg.seed}: each worst view's worst inserted object or edit"
         figures.append(worst_view_figure(edit_cfg, records, worst, report / "worst_views.png", name))
     if score_cfg.render.estimator != stage_cfg.render.estimator and per_view:
