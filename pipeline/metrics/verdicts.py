@@ -31,7 +31,7 @@ from __future__ import annotations
 import math
 
 import numpy as np
-from scipy import stats
+from scipy import integrate, stats
 
 VERDICTS = ("supported", "contradicted", "inconclusive", "not testable")
 
@@ -105,7 +105,14 @@ def power(effect_size: float, seed_sd: float, seeds: int, alpha: float = 0.05) -
     df = seeds - 1
     q = stats.t.ppf(1 - alpha / 2, df)
     nc = effect_size / (seed_sd / math.sqrt(seeds))
-    return float(stats.nct.sf(q, df, nc) + stats.nct.cdf(-q, df, nc))
+
+    # the noncentral t's tails as an integral over the chi-square of the seeds' variance: scipy's `nct`
+    # returns NaN for few seeds and a large noncentrality (2 df, nc 15), which this does not
+    def rejects(v: float) -> float:
+        s = q * math.sqrt(v / df)
+        return (stats.norm.cdf(nc - s) + stats.norm.cdf(-nc - s)) * stats.chi2.pdf(v, df)
+
+    return float(integrate.quad(rejects, 0.0, math.inf, limit=200)[0])
 
 
 def decide(claims: dict[str, dict], alpha: float = 0.05, level: float = 0.95) -> dict[str, dict]:
