@@ -169,15 +169,14 @@ def full_frame_render(system, batch) -> torch.Tensor:
 
 
 def lighting_extras(
-    cfg: DictConfig, stage_cfg: DictConfig, export: Path, tested: dict[str, float] | None
+    cfg: DictConfig, stage_cfg: DictConfig, score_cfg: DictConfig, export: Path, tested: dict[str, float] | None
 ) -> tuple[dict, dict, list[dict], list[Path]]:
     """(metrics, timings, worst views, figures) of the LightNet in `export` scored as the preset says
-    (`scoring_config`): the test metrics (`tested`, the training stage's own when it tested with that
+    (`score_cfg`, `scoring_config`'s): the test metrics (`tested`, the training stage's own when it tested with that
     layer; else None and the test split is scored here), the glossy-pixel re-render (`glossy_render`),
     seconds per image, the test-time thresholds for the `full` preset, insertion and editing, the views
     LightNet renders worst, the per-case insertion figure (`insertion_figure`) and, for a preset that
     changes the layer at render time, the layers' comparison on one view (`layer_figure`)."""
-    score_cfg = scoring_config(cfg, stage_cfg)
     net, _ = load_light_export(export)
     system = train_lighting.build_system(score_cfg)
     system.net.load_state_dict(net.state_dict())
@@ -457,11 +456,11 @@ def run(cfg: DictConfig) -> dict[str, float]:
         if stage == "train_lighting":
             # the stage tested with its training layer: scored with another, its test numbers (and the
             # baselines' under that layer) stay in its own report and the test split is scored again
-            same_layer = str(scoring_config(cfg, stage_cfg).render.estimator) == str(stage_cfg.render.estimator)
-            if weights is not None or not same_layer:
+            score_cfg = scoring_config(cfg, stage_cfg)
+            if weights is not None or score_cfg.render.estimator != stage_cfg.render.estimator:
                 metrics = {k: v for k, v in metrics.items() if not k.startswith(("test/", "baseline/"))}
             tested = {k: v for k, v in metrics.items() if k.startswith("test/")} or None
-            extra, extra_timings, worst, figures = lighting_extras(cfg, stage_cfg, export, tested)
+            extra, extra_timings, worst, figures = lighting_extras(cfg, stage_cfg, score_cfg, export, tested)
             metrics.update(extra)
             timings.update(extra_timings)
             (report / "worst_views.json").write_text(json.dumps(worst, indent=1))
