@@ -13,7 +13,7 @@ export MLFLOW_SERVER_ENABLE_JOB_EXECUTION := false
 export DRJIT_LIBLLVM_PATH := $(LLVM_LIB)
 export PATH := $(CURDIR)/$(VENV)/bin:$(PATH)
 
-.PHONY: setup llvm chromium repro test test-fast lint ui clean-outputs
+.PHONY: setup llvm chromium repro test test-fast lint deps ui clean-outputs
 
 setup: $(STAMP) llvm chromium
 
@@ -55,6 +55,12 @@ lint: setup
 	$(PY) -m ruff check pipeline stages tests
 	$(PY) -m ruff format --check pipeline stages tests
 	$(VENV)/bin/lint-imports
+	$(PY) -m pipeline.tracking.stage_deps --check
+
+# dvc.yaml's code and config deps (and params.yaml's per-ablation `conf` lists) from the import graph and
+# the composed configs: run after adding an import, a stage, a config group option or an ablation entry.
+deps: setup
+	$(PY) -m pipeline.tracking.stage_deps --write
 
 ui: setup
 	@echo "MLflow UI on http://127.0.0.1:$(PORT)/#/experiments?workflowType=machine_learning (Ctrl-C to stop)"

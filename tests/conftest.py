@@ -9,7 +9,6 @@ from pathlib import Path
 
 import pytest
 from filelock import FileLock
-from hydra import compose, initialize_config_dir
 
 ROOT = Path(__file__).resolve().parents[1]
 CONF = ROOT / "conf"
@@ -60,13 +59,11 @@ def run_stage_process(stage: str, args: list[str], cwd: Path) -> str:
 
 
 def compose_cfg(name: str, overrides: list[str] | None = None):
-    """Compose `conf/<name>.yaml` with overrides (Hydra Compose API, no working-dir change). Importing
-    `pipeline.tracking` registers the `${job_dir:...}` resolver, as every stage does, so a test file that
-    only composes configs resolves them when run on its own."""
-    import pipeline.tracking  # noqa: F401
+    """Compose `conf/<name>.yaml` with overrides: the project's one composer (`pipeline.tracking.compose`),
+    which registers the `${job_dir:...}` resolver as every stage does."""
+    from pipeline.tracking.compose import compose
 
-    with initialize_config_dir(config_dir=str(CONF), version_base="1.3"):
-        return compose(config_name=name, overrides=list(overrides or []))
+    return compose(name, list(overrides or []))
 
 
 def _shared_dir(tmp_path_factory, worker_id) -> Path:

@@ -53,27 +53,3 @@ def test_lightning_modules_live_in_systems():
         if "systems" not in p.parts and "(L.LightningModule)" in p.read_text()
     ]
     assert offenders == []
-
-
-def test_every_stage_lists_the_code_it_runs_as_a_dvc_dep():
-    """A stage whose code changed must re-run: every project module a stage imports (transitively, from
-    its `stages/<name>.py`) is covered by one of its deps in dvc.yaml (a file, or a folder holding it)."""
-    import grimp
-    import yaml
-
-    stages = yaml.safe_load((ROOT / "dvc.yaml").read_text())["stages"]
-    graph = grimp.build_graph("pipeline", "stages", cache_dir=None)
-    missing = {}
-    for name, stage in stages.items():
-        stage = stage.get("do", stage)  # a foreach stage lists its deps under `do`
-        deps = [d for d in stage["deps"] if not d.startswith(("outputs/", "reports/"))]
-        closure = graph.find_upstream_modules(f"stages.{name}") | {f"stages.{name}"}
-        for module in sorted(closure):
-            path = Path(*module.split("."))
-            files = [path.with_suffix(".py"), path / "__init__.py"]
-            rel = next((f for f in files if (ROOT / f).is_file()), None)
-            if rel is None or (rel.name == "__init__.py" and "import" not in (ROOT / rel).read_text()):
-                continue  # a package marker holding no import runs no code
-            if not any(str(rel) == d or str(rel).startswith(d.rstrip("/") + "/") for d in deps):
-                missing.setdefault(name, []).append(str(rel))
-    assert missing == {}

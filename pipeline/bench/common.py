@@ -2,21 +2,84 @@
 
 A bench JSON keeps what it timed or measured in its own run under `measured` and any figure it did not
 measure (a number from a paper or another program) under `quoted`, each as {value, unit, source};
-nothing under `measured` is derived from a quoted figure.
+nothing under `measured` is derived from a quoted figure. Every JSON also records its `provenance`: the
+commit it ran (and whether the tree had uncommitted changes), the command, the date, and each stage config
+it composed (`compose`: name, overrides, profile and a hash of the resolved config), so a reader can
+tell whether it measured what the current profile runs.
 """
 
 from __future__ import annotations
 
+import datetime
+import hashlib
 import json
 import os
 import platform
 import statistics
+import subprocess
+import sys
 import time
 from pathlib import Path
 
 import torch
 
 from pipeline.tracking import project_root
+
+# the stage configs this process composed (`compose`), recorded in its JSON's provenance
+COMPOSED: list[dict] = []
+# machine-specific keys left out of a config's hash: where things are, not what runs
+UNHASHED = ("paths", "tracking", "progress", "hydra", "out_dir", "report_dir", "data_dir", "ood_data_dir")
+
+
+def config_hash(cfg) -> str:
+    """SHA-256 (first 16 hex digits) of a composed config, resolved with its `paths.*` roots as
+    placeholders (where the outputs are is not what runs), without its machine-specific keys."""
+    from omegaconf import OmegaConf
+
+    cfg = cfg.copy()
+    for key in list(OmegaConf.select(cfg, "paths") or {}):
+        cfg.paths[key] = f"<paths.{key}>"
+    plain = OmegaConf.to_container(cfg, resolve=True)
+    kept = {k: v for k, v in plain.items() if k not in UNHASHED and not str(k).endswith("_path")}
+    return hashlib.sha256(json.dumps(kept, sort_keys=True, default=str).encode()).hexdigest()[:16]
+
+
+def compose(name: str, overrides: list[str] | tuple[str, ...] = ()):
+    """`conf/<name>.yaml` with `overrides` (`pipeline.tracking.compose`), recorded for the provenance."""
+    from omegaconf import OmegaConf
+
+    from pipeline.tracking.compose import compose as compose_config
+
+    cfg = compose_config(name, list(overrides))
+    profile = OmegaConf.select(cfg, "profile_name")
+    COMPOSED.append({"config": name, "overrides": list(overrides), "profile": profile, "sha256": config_hash(cfg)})
+    return cfg
+
+
+def git_commit() -> tuple[str | None, bool | None]:
+    """(HEAD's SHA, whether tracked files differ from it), or (None, None) outside a git checkout."""
+    root = project_root()
+    try:
+        sha = subprocess.run(["git", "rev-parse", "HEAD"], cwd=root, capture_output=True, text=True, check=True)
+        dirty = subprocess.run(["git", "diff", "--quiet", "HEAD", "--"], cwd=root, capture_output=True)
+    except (OSError, subprocess.CalledProcessError):
+        return None, None
+    return sha.stdout.strip(), dirty.returncode != 0
+
+
+def provenance() -> dict:
+    """What a bench JSON says about its own run: commit, dirty tree, command, UTC date, the stage configs
+    composed (`compose`) and their profile (None when it composed none: a bench of its own settings)."""
+    commit, dirty = git_commit()
+    profiles = sorted({c["profile"] for c in COMPOSED if c["profile"] is not None})
+    return {
+        "commit": commit,
+        "dirty": dirty,
+        "command": " ".join(["python", "-m", Path(sys.argv[0]).stem if sys.argv else "?", *sys.argv[1:]]),
+        "date": datetime.datetime.now(datetime.UTC).strftime("%Y-%m-%d"),
+        "profile": ",".join(profiles) if profiles else None,
+        "configs": list(COMPOSED),
+    }
 
 
 def median_seconds(fn, repeats: int = 3, warmup: int = 1) -> float:
@@ -73,10 +136,12 @@ def quoted(value: float, unit: str, source: str) -> dict:
 
 
 def write_report(name: str, payload: dict, device: str = "cpu", path: Path | None = None) -> Path:
-    """reports/bench/<name>.json (or `path`): the payload with the bench's name and the machine."""
+    """reports/bench/<name>.json (or `path`): the payload with the bench's name, the machine and the
+    run's `provenance`."""
     path = Path(path) if path is not None else project_root() / "reports" / "bench" / f"{name}.json"
     path.parent.mkdir(parents=True, exist_ok=True)
-    path.write_text(json.dumps({"benchmark": name, "machine": machine(device), **payload}, indent=1) + "\n")
+    head = {"benchmark": name, "machine": machine(device), "provenance": provenance()}
+    path.write_text(json.dumps({**head, **payload}, indent=1) + "\n")
     return path
 
 
@@ -89,7 +154,7 @@ def publish(name: str, report: dict, plot, device: str = "cpu") -> Path:
 
 
 def edit_object_cases(view_id: str, cases: list) -> list:
-    """The object cases of one view's `cases` (as `edit.view_context` reads them), checked to come first:
+    """The object cases of one view's `cases` (as `insertion_scoring.view_context` reads them), checked to come first:
     the `edit` stage seeds a case by its index in the view's list, so the objects alone keep the seeds it
     gives them only when no edit is listed before them."""
     objects = [c for c in cases if c.kind == "object"]

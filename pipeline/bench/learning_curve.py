@@ -10,7 +10,7 @@ The cosine here decays per step over the run's budget (the stage steps it per ep
 sampled finer). Each run is scored on the held-out test split:
 - re-render PSNR (dB) and surface / free light nMSE, `train_lighting`'s test metrics (`test_scores`);
 - object insertion PSNR (dB) per material class and over all objects against Mitsuba, the `edit` stage's
-  scoring of its LightNet row (`edit.score_rows`) on the test cases, each case with the stage's seed.
+  scoring of its LightNet row (`insertion_scoring.score_rows`) on the test cases, each case with the stage's seed.
 Every point's insertion is compared with the reference point (most rooms, most steps) on the same cases,
 paired by view (`paired_bootstrap`, whole views resampled); the scaled-constant and nearest-probe rows are
 scored once, on the reference run. The training seconds are timed per run (the axis against minutes).
@@ -42,8 +42,8 @@ def build(overrides: list[str], seed: int):
     """The `train_lighting` config, LightingSystem and optimiser under `overrides` (stage defaults)."""
     from hydra.utils import instantiate
 
-    from pipeline.runs.ablate import compose
-    from pipeline.runs.train_lighting import build_system
+    from pipeline.bench.common import compose
+    from pipeline.systems.lighting_training import build_system
 
     torch.manual_seed(seed)
     cfg = compose("train_lighting", [f"seed={seed}", *overrides])
@@ -105,10 +105,10 @@ def score(
     `rows` (the edit stage's `insert/<class>/<row>/psnr`), and the per-case insertion records."""
     from omegaconf import OmegaConf
 
+    from pipeline.bench.common import compose
     from pipeline.models.export import save_light_export
-    from pipeline.runs import edit
-    from pipeline.runs.ablate import compose
-    from pipeline.runs.train_lighting import test_scores
+    from pipeline.systems import insertion_scoring
+    from pipeline.systems.lighting_training import test_scores
 
     tested = test_scores(system, test_loader)
     out = {k: float(tested[k]) for k in TEST_METRICS}
@@ -118,7 +118,7 @@ def score(
         "edit", [*edit_overrides, f"seed={seed}", f"light_path={path}", f"material_path={cfg.material_path}"]
     )
     OmegaConf.set_readonly(edit_cfg, False)
-    summary, records = edit.score_rows(edit_cfg, rows, progress=True)
+    summary, records = insertion_scoring.score_rows(edit_cfg, rows, progress=True)
     for c in CLASSES:
         for row in rows:
             key = f"insert/{c}/{row}/psnr"

@@ -103,17 +103,17 @@ def headline(classes: dict) -> list[dict]:
 def run(overrides: list[str], gains: tuple[float, ...], cases_csv: Path, progress: bool = True) -> dict:
     """Scores every object case of the test views of the `edit` configuration composed with `overrides`
     (light_path, material_path, data_root, ...); writes the per-case CSV and returns the report."""
-    from pipeline.runs import edit
-    from pipeline.runs.ablate import compose
+    from pipeline.bench.common import compose
+    from pipeline.systems import insertion_scoring
 
     cfg = compose("edit", overrides)
-    shared = edit.stage_setup(cfg)
+    shared = insertion_scoring.stage_setup(cfg)
     records, csv_rows = [], []
     for scene, view in tqdm(shared["views"], desc="light gain", unit="view", disable=not progress):
-        ctx, cases = edit.view_context(shared, scene, view, cfg, oracle=False)
+        ctx, cases = insertion_scoring.view_context(shared, scene, view, cfg, oracle=False)
         v = ctx["view"]
         objects = edit_object_cases(ctx["id"], cases)
-        for res in edit.score_view(ctx, objects, cfg, ROWS):
+        for res in insertion_scoring.score_view(ctx, objects, cfg, ROWS):
             case = res["case"]
             rec = {"view": ctx["id"], "label": case.label}
             row = {"view": ctx["id"], "case": case.name, "kind": case.kind, "label": case.label}

@@ -9,7 +9,6 @@ Writes reports/bench/material_net.json and a PNG of accuracy vs inference time.
 from __future__ import annotations
 
 import argparse
-from pathlib import Path
 
 import torch
 from matplotlib.figure import Figure
@@ -20,14 +19,12 @@ from pipeline.bench.common import median_seconds, publish
 from pipeline.models.material_net import MaterialNet, parameter_count
 
 BACKBONES = ("small", "resnet34", "densenet121")
-CONF = Path(__file__).resolve().parents[2] / "conf"
 
 
 def _config(backbone: str, overrides=()):
-    from hydra import compose, initialize_config_dir
+    from pipeline.bench.common import compose
 
-    with initialize_config_dir(config_dir=str(CONF), version_base="1.3"):
-        return compose("train_material", [f"model/material_net={backbone}", *overrides])
+    return compose("train_material", [f"model/material_net={backbone}", *overrides])
 
 
 def speed(backbone: str, resolutions, repeats: int) -> list[dict]:
@@ -67,8 +64,8 @@ def short_training(backbone: str, data_dir: str, seconds: float) -> dict:
     """Train for `seconds` of wall clock with the stage's system and data, then score the test split."""
     import lightning as L
 
-    from pipeline.runs.train_material import build_datamodule, build_system
     from pipeline.systems.material import METRICS
+    from pipeline.systems.material_training import build_datamodule, build_system
 
     cfg = _config(backbone, [f"data_dir={data_dir}", "trainer.max_epochs=1000", "figure_every=0"])
     L.seed_everything(0, verbose=False)

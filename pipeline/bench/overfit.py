@@ -47,8 +47,8 @@ def build(overrides: list[str], seed: int):
     """The `train_lighting` LightingSystem (ground-truth G-buffers) and its optimiser under `overrides`."""
     from hydra.utils import instantiate
 
-    from pipeline.runs.ablate import compose
-    from pipeline.runs.train_lighting import build_system
+    from pipeline.bench.common import compose
+    from pipeline.systems.lighting_training import build_system
 
     torch.manual_seed(seed)
     cfg = compose("train_lighting", ["gbuffers=ground_truth", f"seed={seed}", *overrides])
@@ -62,8 +62,8 @@ def build_material(overrides: list[str], seed: int):
     """The `train_material` MaterialSystem and its optimiser under `overrides`."""
     from hydra.utils import instantiate
 
-    from pipeline.runs.ablate import compose
-    from pipeline.runs.train_material import build_system
+    from pipeline.bench.common import compose
+    from pipeline.systems.material_training import build_system
 
     torch.manual_seed(seed)
     cfg = compose("train_material", [f"seed={seed}", *overrides])

@@ -218,11 +218,11 @@ def run(
 ) -> tuple[dict, list[dict]]:
     """Scores every object case of the test views of the `edit` configuration composed with `overrides`;
     returns the report and the mirror panels of the crop figure."""
-    from pipeline.runs import edit
-    from pipeline.runs.ablate import compose
+    from pipeline.bench.common import compose
+    from pipeline.systems import insertion_scoring
 
     cfg = compose("edit", overrides)
-    shared = edit.stage_setup(cfg)
+    shared = insertion_scoring.stage_setup(cfg)
     spp = int(cfg.oracle.spp) if spp is None else int(spp)
     fine_layer = MCRenderLayer.from_config({**OmegaConf.to_container(cfg.render, resolve=True), "spp": spp})
     oracle = _edit_oracle(edit_cases)
@@ -230,7 +230,7 @@ def run(
     records, panels, tallies = [], [], {}
     views = shared["views"][:max_views] if max_views else shared["views"]
     for scene, view in tqdm(views, desc="probe resolution", unit="view", disable=not progress):
-        ctx, cases = edit.view_context(shared, scene, view, cfg, oracle=False)
+        ctx, cases = insertion_scoring.view_context(shared, scene, view, cfg, oracle=False)
         v = ctx["view"]
         objects = edit_object_cases(ctx["id"], cases)
         if not objects:
@@ -238,12 +238,12 @@ def run(
         room = Room.from_json(json.loads((shared["root"] / scene / "scene.json").read_text()))
         mi_scene = mb.load_scene(room, shared["max_depth"])
         generator = torch.Generator().manual_seed(int(ctx["seed"]) + 1)  # as `light_net_radiance` seeds it
-        for index, res in enumerate(edit.score_view(ctx, objects, cfg, EDIT_ROWS)):
+        for index, res in enumerate(insertion_scoring.score_view(ctx, objects, cfg, EDIT_ROWS)):
             case = res["case"]
-            centre = edit.case_centre(case, v.gt, v.fov, ctx["w2v"]).numpy()
+            centre = insertion_scoring.case_centre(case, v.gt, v.fov, ctx["w2v"]).numpy()
             obj = {"albedo": case.albedo, "material": case.material, "normal": case.normal, "depth": case.depth}
             shading = composite_gbuffer(v.pred, case.pixel, **obj)
-            case_seed = int(ctx["seed"]) + 7919 * index  # as `edit.score_view` seeds it
+            case_seed = insertion_scoring.case_seed(int(ctx["seed"]), index)  # the seed `score_view` gives it
             probe = int(torch.argmin((ctx["light"].free.position - torch.from_numpy(centre)).norm(dim=-1)))
             maps = {"nearest_probe_fine": ctx["light"].free.radiance[probe : probe + 1]}
             for size, name in zip(sizes, names, strict=True):

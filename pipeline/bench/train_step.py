@@ -43,8 +43,8 @@ def build(setting: tuple, seed: int, overrides: list[str]):
     """A `train_lighting` LightingSystem (tiny, predicted G-buffers) under `setting`, and its optimiser."""
     from hydra.utils import instantiate
 
-    from pipeline.runs.ablate import compose
-    from pipeline.runs.train_lighting import build_system
+    from pipeline.bench.common import compose
+    from pipeline.systems.lighting_training import build_system
 
     cache, recompute, compiled = setting
     cfg = compose("train_lighting", [f"model.light_net.ssrt_compiled={str(compiled).lower()}", *overrides])

@@ -47,43 +47,16 @@ from pipeline.metrics.image import psnr_tonemapped, tonemap
 from pipeline.models.light_net import load_light_export
 from pipeline.models.render_layer import MCRenderLayer
 from pipeline.ops.camera import grid_pixels, pixel_values
-from pipeline.runs import edit, train_lighting, train_material
+from pipeline.systems import insertion_scoring
 from pipeline.systems.lighting_figures import render_samples
+from pipeline.systems.lighting_training import build_system, test_scores, train_lighting
+from pipeline.systems.material_training import train_material
 from pipeline.tracking import publish, stage_run
+from pipeline.tracking.compose import compose, preset_stage
 from pipeline.tracking.figures import paired_scatter
 
-CONF_DIR = Path(__file__).resolve().parents[2] / "conf"
 STAGES = {"train_lighting": train_lighting, "train_material": train_material}
 INSERTION_ROWS = ("lightnet", "scaled_constant")
-
-
-def compose(name: str, overrides: list[str]) -> DictConfig:
-    """Compose `conf/<name>.yaml` from inside a Hydra app (its search path) or from plain Python."""
-    from hydra import compose as hydra_compose
-    from hydra import initialize_config_dir
-    from hydra.core.global_hydra import GlobalHydra
-
-    if GlobalHydra.instance().is_initialized():
-        return hydra_compose(config_name=name, overrides=overrides)
-    with initialize_config_dir(config_dir=str(CONF_DIR), version_base="1.3"):
-        return hydra_compose(config_name=name, overrides=overrides)
-
-
-def preset_stage(preset: str) -> str:
-    """The training stage a preset applies to: the schedule it includes (`common/lighting` or
-    `common/material`). Raises naming the preset file when it is missing or includes neither."""
-    import yaml
-
-    path = CONF_DIR / "ablation" / f"{preset}.yaml"
-    if not path.is_file():
-        known = sorted(p.stem for p in path.parent.glob("*.yaml"))
-        raise FileNotFoundError(f"ablation={preset}: no {path} (presets: {', '.join(known)})")
-    defaults = (yaml.safe_load(path.read_text()) or {}).get("defaults") or []
-    stages = {"common/lighting": "train_lighting", "common/material": "train_material"}
-    found = [stages[d] for d in defaults if isinstance(d, str) and d in stages]
-    if len(found) != 1:
-        raise ValueError(f"{path}: its defaults must include exactly one of {sorted(stages)}")
-    return found[0]
 
 
 def stage_config(cfg: DictConfig, extra: tuple[str, ...] = ()) -> DictConfig:
@@ -140,7 +113,7 @@ def lighting_test(system, loader, threshold: float) -> dict[str, float]:
     """Test metrics of `system` at out-of-view threshold `threshold` (`train_lighting.test_scores`: what
     the stage's test pass logs)."""
     system.net.out_threshold = float(threshold)
-    return {f"test/{k}": v for k, v in train_lighting.test_scores(system, loader).items()}
+    return {f"test/{k}": v for k, v in test_scores(system, loader).items()}
 
 
 @torch.no_grad()
@@ -178,7 +151,7 @@ def lighting_extras(
     LightNet renders worst, the per-case insertion figure (`insertion_figure`) and, for a preset that
     changes the layer at render time, the layers' comparison on one view (`layer_figure`)."""
     net, _ = load_light_export(export)
-    system = train_lighting.build_system(score_cfg)
+    system = build_system(score_cfg)
     system.net.load_state_dict(net.state_dict())
     system.eval()
     dm = InteriorVerseDataModule(stage_cfg.data_dir, batch_size=int(stage_cfg.batch_size), seed=int(cfg.seed))
@@ -219,7 +192,7 @@ def lighting_extras(
     rows = (
         INSERTION_ROWS if stage_cfg.gbuffers == "predicted" else ("lightnet", "lightnet_gt_gbuffers", "scaled_constant")
     )
-    insertion, records = edit.score_rows(edit_cfg, rows, progress=bool(cfg.progress))
+    insertion, records = insertion_scoring.score_rows(edit_cfg, rows, progress=bool(cfg.progress))
     metrics.update({f"edit/{k}": v for k, v in insertion.items()})
     timings["insertion_minutes"] = (time.perf_counter() - t0) / 60.0
     worst = worst_views(records, int(cfg.worst_views))
@@ -240,29 +213,21 @@ def worst_view_figure(edit_cfg: DictConfig, records: list[dict], worst: list[dic
     """The case LightNet renders worst in each of the `worst` views (`worst_views`), re-rendered as the
     insertion scoring rendered it (the same view seeds and case order), in `insertion_grid`: the photo,
     Mitsuba's ground truth, LightNet's and the scaled constant's composites. records: `score_rows`'s."""
-    from pipeline.models.insertion import composite_image
     from pipeline.tracking.figures import insertion_grid
 
     order = [w["view"] for w in worst]
-    shared = edit.stage_setup(edit_cfg)
+    shared = insertion_scoring.stage_setup(edit_cfg)
     panels = {}
     for scene, view in shared["views"]:
         if f"{scene}/{view}" not in order:
             continue
-        ctx, cases = edit.view_context(shared, scene, view, edit_cfg, oracle=False)
-        results = edit.score_view(ctx, cases, edit_cfg, INSERTION_ROWS)
+        ctx, cases = insertion_scoring.view_context(shared, scene, view, edit_cfg, oracle=False)
+        results = insertion_scoring.score_view(ctx, cases, edit_cfg, INSERTION_ROWS)
         mine = [r for r in records if r["view"] == ctx["id"]]  # score_rows's records, in the same case order
         res = results[int(np.argmin([r["lightnet/psnr"] for r in mine]))]
-        photo, case = ctx["view"].photo, res["case"]
-        panels[ctx["id"]] = {
-            "label": f"{ctx['id']} {case.name} {case.label}",
-            "photo": photo.numpy(),
-            "scale": float(ctx["view"].scale),
-            "pixels": case.pixel.numpy(),
-            "gt": composite_image(photo, case.pixel, case.radiance).numpy(),
-            "rows": {row: composite_image(photo, case.pixel, res["renders"][row]).numpy() for row in INSERTION_ROWS},
-            "psnr": {row: res["rows"][row]["psnr"] for row in INSERTION_ROWS},
-        }
+        panels[ctx["id"]] = insertion_scoring.case_panel(
+            res, ctx["view"].photo, ctx["view"].scale, ctx["id"], INSERTION_ROWS
+        )
     return insertion_grid([panels[v] for v in order if v in panels], path, title)
 
 
@@ -436,12 +401,14 @@ def run(cfg: DictConfig) -> dict[str, float]:
             out = Path(cfg.out_dir)  # the stage's out exists and says why it holds no model
             out.mkdir(parents=True, exist_ok=True)
             (out / "UNAVAILABLE.txt").write_text(f"ablation={cfg.preset} did not run: {why}\n")
-            publish(report, {"available": 0.0}, artifacts=(report / "preset.json",))
+            (report / "worst_views.json").write_text("[]")  # every declared out is written, empty here
+            timings = {"stage_minutes": (time.perf_counter() - started) / 60.0}
+            publish(report, {"available": 0.0}, artifacts=(report / "preset.json",), timings=timings)
             return {"available": 0.0}
         timings = {}
         if weights is None:
             t0 = time.perf_counter()
-            stage_metrics = STAGES[stage].run(stage_cfg)
+            stage_metrics = STAGES[stage](stage_cfg)
             timings["train_minutes"] = (time.perf_counter() - t0) / 60.0
             export = Path(stage_cfg.out_dir) / "model.pt"
         else:  # a render-time preset trains nothing: its out names the weights it scored
@@ -468,6 +435,7 @@ def run(cfg: DictConfig) -> dict[str, float]:
             for figure in figures:
                 mlflow.log_artifact(str(figure), "figures")
         else:  # the training stage's test maps (train_material always writes them), also on the ablate run
+            (report / "worst_views.json").write_text("[]")  # a MaterialNet preset scores no views' light
             mlflow.log_artifact(str(Path(stage_cfg.report_dir) / "test_maps.png"), "figures")
         metrics.update(training_health(run.info.run_id, metrics))
         timings["stage_minutes"] = (time.perf_counter() - started) / 60.0  # from the start of run(): imports excluded

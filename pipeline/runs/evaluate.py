@@ -135,8 +135,8 @@ def light_system(profile: str, material_path: str, light_path: str, seed: int):
     """`train_lighting`'s LightingSystem under `profile` (predicted G-buffers from the MaterialNet export
     at `material_path`) holding the LightNet export at `light_path`, whose options must be the profile's
     (`initialise_from_export`)."""
-    from pipeline.runs.ablate import compose
-    from pipeline.runs.train_lighting import build_system, initialise_from_export
+    from pipeline.systems.lighting_training import build_system, initialise_from_export
+    from pipeline.tracking.compose import compose
 
     cfg = compose("train_lighting", [f"profile={profile}", f"seed={seed}", f"material_path={material_path}"])
     system = build_system(cfg)

@@ -26,7 +26,7 @@ import math
 from pathlib import Path
 
 import numpy as np
-from omegaconf import DictConfig
+from omegaconf import DictConfig, OmegaConf
 
 from pipeline.metrics.verdicts import decide, power, seed_effect
 from pipeline.tracking import publish, stage_run
@@ -52,8 +52,10 @@ MATERIAL_COLUMNS = [
 ]
 
 
-def read_runs(ablate_dir: Path) -> dict[str, dict[int, dict]]:
-    """{preset: {seed: {"preset": preset.json, "metrics": ..., "timings": ...}}} of every run folder."""
+def read_runs(ablate_dir: Path, claims: dict | None = None) -> dict[str, dict[int, dict]]:
+    """{preset: {seed: {"preset": preset.json, "metrics": ..., "timings": ...}}} of every run folder.
+    claims: {preset: {claim, source, expect}} (conf/claims/, the report's own config), laid over each
+    run's preset description: a claim is the report's to state, not the run's."""
     runs: dict[str, dict[int, dict]] = {}
     for folder in sorted(p for p in ablate_dir.iterdir() if p.is_dir()):
         files = {name: folder / f"{name}.json" for name in ("preset", "metrics", "timings")}
@@ -64,6 +66,7 @@ def read_runs(ablate_dir: Path) -> dict[str, dict[int, dict]]:
         worst = folder / "worst_views.json"
         data["worst_views"] = json.loads(worst.read_text()) if worst.is_file() else []
         data["figures"] = sorted(p.name for p in folder.glob("*.png"))
+        data["preset"].update((claims or {}).get(data["preset"]["name"], {}))
         runs.setdefault(data["preset"]["name"], {})[int(data["preset"]["seed"])] = data
     if not runs:
         raise FileNotFoundError(f"{ablate_dir}: no ablation run folders (run the ablate stage first)")
@@ -343,9 +346,10 @@ def ablation_tables(
     ]
 
 
-def results_markdown(reports: Path, ablate_dir: Path, profile: str) -> str:
-    """docs/results.md from the reports alone (what the stage writes; the test renders it the same way)."""
-    runs = read_runs(ablate_dir)
+def results_markdown(reports: Path, ablate_dir: Path, profile: str, claims: dict | None = None) -> str:
+    """docs/results.md from the reports and the claims (`read_runs`) alone (what the stage writes; the test
+    renders it the same way)."""
+    runs = read_runs(ablate_dir, claims)
     light_rows, _ = table({**runs, **threshold_runs(runs)}, "train_lighting", LIGHT_COLUMNS)
     mat_rows, _ = table(runs, "train_material", MATERIAL_COLUMNS)
     claim_rows, _ = claims_table(runs)
@@ -367,7 +371,8 @@ def run(cfg: DictConfig) -> dict[str, float]:
     import mlflow
 
     reports, out = Path(cfg.reports_root), Path(cfg.report_dir)
-    runs = read_runs(Path(cfg.ablate_dir))
+    claims = OmegaConf.to_container(cfg.claims, resolve=True)
+    runs = read_runs(Path(cfg.ablate_dir), claims)
     out.mkdir(parents=True, exist_ok=True)
     light_rows, light_numbers = table({**runs, **threshold_runs(runs)}, "train_lighting", LIGHT_COLUMNS)
     mat_rows, mat_numbers = table(runs, "train_material", MATERIAL_COLUMNS)
@@ -396,7 +401,7 @@ def run(cfg: DictConfig) -> dict[str, float]:
     (out / "ablations.md").write_text("\n".join(doc) + "\n")
     results_doc = Path(cfg.results_doc)
     results_doc.parent.mkdir(parents=True, exist_ok=True)
-    results_doc.write_text(results_markdown(reports, Path(cfg.ablate_dir), cfg.profile_name))
+    results_doc.write_text(results_markdown(reports, Path(cfg.ablate_dir), cfg.profile_name, claims))
     points = pareto_points(runs)
     figure = pareto_figure(
         points,

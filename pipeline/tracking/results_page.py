@@ -396,15 +396,35 @@ def flat_rows(rows: list) -> tuple[list[str], list[list[str]]]:
     ]
 
 
-def bench_block(name: str, data: dict) -> list[str]:
-    """A bench JSON's headline: its `measured`/`summary` scalars and row lists, and any `quoted` figures
-    labelled as quoted with their source."""
+def provenance_line(data: dict, profile: str) -> str:
+    """Where a bench's numbers come from (`bench.common.provenance`): commit, date, profile and config
+    hashes, marked when it did not measure the current profile's configuration."""
+    prov = data.get("provenance")
+    if not prov:
+        return (
+            "**Not known to measure the current configuration**: this JSON predates the commit and "
+            "configuration record; re-run the bench before relying on it."
+        )
+    commit = (prov.get("commit") or "unknown")[:10] + (" with uncommitted changes" if prov.get("dirty") else "")
+    hashes = ", ".join(f"`{c['config']}` {c['sha256']}" for c in prov.get("configs", [])) or "none"
+    line = f"Measured {prov.get('date', '?')} at commit {commit}; profile {prov.get('profile')}; configs {hashes}."
+    if prov.get("profile") is None:
+        return line + " Its own settings (no stage config): see the JSON."
+    if str(prov["profile"]) != str(profile):
+        return line + f" **Not the current profile's configuration** (`{profile}`)."
+    return line
+
+
+def bench_block(name: str, data: dict, profile: str) -> list[str]:
+    """A bench JSON's headline: where it comes from (`provenance_line`), its `measured`/`summary` scalars
+    and row lists, and any `quoted` figures labelled as quoted with their source."""
     machine = data.get("machine", {})
     lines = [
         f"### `{name}`",
         "",
         f"From `reports/bench/{name}.json` (device {machine.get('device', 'n/a')}, "
         f"torch threads {machine.get('torch_threads', 'n/a')}, torch {machine.get('torch', 'n/a')}).",
+        provenance_line(data, profile),
     ]
     head = data.get("measured", data.get("summary"))
     if head is None and name == "light_energy":
@@ -464,13 +484,13 @@ BENCH_HEADLINES = {
 }
 
 
-def section_benches(reports: Path) -> list[str]:
+def section_benches(reports: Path, profile: str) -> list[str]:
     lines = ["## Benchmarks (`python -m pipeline.bench.<name>`)", ""]
     files = sorted((reports / "bench").glob("*.json"))
     if not files:
         return lines + ["No bench results under `reports/bench/`.", ""]
     for f in files:
-        lines += bench_block(f.stem, read_json(f) or {})
+        lines += bench_block(f.stem, read_json(f) or {}, profile)
     return lines
 
 
@@ -504,5 +524,5 @@ def render(reports: Path, ablation_tables: list[str], profile: str) -> str:
         *ablation_tables,
         "",
     ]
-    lines += section_benches(reports)
+    lines += section_benches(reports, profile)
     return "\n".join(lines).rstrip() + "\n"

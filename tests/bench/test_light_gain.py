@@ -87,7 +87,7 @@ def test_summary_finds_each_class_best_gain():
 
 @pytest.mark.slow
 def test_bench_on_micro_matches_the_edit_stage(micro_root, micro_shards, micro_exports, tmp_path):
-    from pipeline.runs.edit import score_rows
+    from pipeline.systems.insertion_scoring import score_rows
 
     common = [
         "profile=micro",
@@ -126,6 +126,6 @@ def test_bench_on_micro_matches_the_edit_stage(micro_root, micro_shards, micro_e
 
     (rows_summary,) = report["summary"].values()
     assert [r["class"] for r in rows_summary] == list(report["classes"])
-    assert any("| best gain |" in line for line in bench_block("light_gain", report))
+    assert any("| best gain |" in line for line in bench_block("light_gain", report, "tiny"))
     curve = report["classes"]["all"]["rows"]["lightnet"]["psnr"]
     assert curve[1] == pytest.approx(np.mean(stage))

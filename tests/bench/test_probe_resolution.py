@@ -103,5 +103,5 @@ def test_bench_on_micro(micro_root, micro_shards, micro_exports, tmp_path):
     assert 0 <= report["out_of_view_ray_share"][report["cases"][0]["label"]] <= 1
     from pipeline.tracking.results_page import bench_block
 
-    block = "\n".join(bench_block("probe_resolution", report))
+    block = "\n".join(bench_block("probe_resolution", report, "tiny"))
     assert "| lightnet_true_out |" in block and "held out of view" in block

@@ -35,8 +35,10 @@ def test_dvc_runs_every_claim_at_enough_seeds_and_only_existing_presets():
     entries = yaml.safe_load((ROOT / "params.yaml").read_text())["ablations"]
     listed = {v["preset"] for v in entries.values()}
     assert listed | SWEEP_ONLY == set(PRESETS) and not listed & SWEEP_ONLY
+    claims = yaml.safe_load((CONF / "claims" / "paper.yaml").read_text())
+    assert set(claims) <= set(PRESETS), "a claim for a preset that does not exist"
     for name in PRESETS:
-        meta = _preset_file(name)["preset"]
+        meta = {**_preset_file(name)["preset"], **claims.get(name, {})}
         seeds = sorted(v["seed"] for v in entries.values() if v["preset"] == name)
         if meta.get("claim") or name in ("full", "material_small"):  # claims and the references they need
             lighting = "common/lighting" in _preset_file(name)["defaults"]
@@ -84,7 +86,7 @@ ONE_CHANGE = {
 def test_every_preset_changes_one_thing_against_its_reference(profile, monkeypatch):
     from omegaconf import OmegaConf
 
-    from pipeline.runs.ablate import preset_stage
+    from pipeline.tracking.compose import preset_stage
 
     monkeypatch.setenv("INVRENDER_VGG16_WEIGHTS", "/weights/vgg16.pth")  # the perceptual preset's one change
     assert set(ONE_CHANGE) == set(PRESETS), "a new preset: say what it changes"
@@ -128,11 +130,13 @@ def _vgg16_weights(path: Path, layers) -> Path:
 @pytest.mark.slow
 @pytest.mark.parametrize("preset", PRESETS)
 def test_every_preset_composes_and_takes_a_training_step(micro_shards, micro_exports, preset, tmp_path, monkeypatch):
-    from pipeline.runs import ablate, train_lighting, train_material
-    from pipeline.runs.train_material import build_datamodule
+    from pipeline.runs import ablate
+    from pipeline.systems import lighting_training, material_training
+    from pipeline.systems.material_training import build_datamodule
+    from pipeline.tracking.compose import preset_stage
 
     base = ["profile=micro", f"ablation={preset}", f"data_dir={micro_shards}"]
-    stage = ablate.preset_stage(preset)
+    stage = preset_stage(preset)
     overrides = [*base, f"material_path={micro_exports / 'material.pt'}"] if stage == "train_lighting" else base
     vgg_weights = None
     if preset == "material_perceptual":  # without VGG16 weights: reported unavailable, never faked
@@ -147,11 +151,11 @@ def test_every_preset_composes_and_takes_a_training_step(micro_shards, micro_exp
     if stage == "train_lighting":
         from pipeline.data.datamodules import InteriorVerseDataModule
 
-        system = train_lighting.build_system(cfg)
+        system = lighting_training.build_system(cfg)
         batch = next(iter(InteriorVerseDataModule(micro_shards, batch_size=2, lighting=True).train_dataloader()))
         assert cfg.epochs.train_lighting == cfg.ablation_schedule.train_lighting.epochs
     else:
-        system = train_material.build_system(cfg)
+        system = material_training.build_system(cfg)
         batch = next(iter(build_datamodule(cfg).train_dataloader()))
     opt = system.configure_optimizers()
     opt = opt["optimizer"] if isinstance(opt, dict) else opt

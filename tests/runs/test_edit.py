@@ -280,7 +280,7 @@ def test_rows_on_the_same_shading_draw_the_same_directions(micro_root, micro_sha
     ratio * scale / constant, per channel, only if both drew the same directions. Views get seeds of
     their own."""
     from pipeline.data import interiorverse as iv
-    from pipeline.runs.edit import score_view, stage_setup, view_context
+    from pipeline.systems.insertion_scoring import score_view, stage_setup, view_context
 
     cfg = compose_cfg(
         "edit",

@@ -15,7 +15,11 @@ REPORTS = ROOT / "reports"
 
 
 def render(reports: Path) -> str:
-    return results_markdown(reports, reports / "ablate", "tiny")
+    """The page as the stage renders it: with the claims of conf/claims/ (the report's own config)."""
+    import yaml
+
+    claims = yaml.safe_load((ROOT / "conf" / "claims" / "paper.yaml").read_text())
+    return results_markdown(reports, reports / "ablate", "tiny", claims)
 
 
 def test_committed_results_page_is_what_the_reports_render():

@@ -32,7 +32,8 @@ from tests.conftest import compose_cfg
 import importlib
 
 stage, overrides, kill_epoch = sys.argv[1], json.loads(sys.argv[2]), int(sys.argv[3])
-module = importlib.import_module(f"pipeline.runs.{{stage}}")
+runner = importlib.import_module(f"pipeline.runs.{{stage}}")
+module = importlib.import_module({training!r}[stage])  # where the stage builds its trainer
 
 
 class KillMidEpoch(Callback):
@@ -45,10 +46,14 @@ make_trainer = module.stage_trainer
 module.stage_trainer = lambda run, kw, out, callbacks=(), progress=True: make_trainer(
     run, kw, out, [*callbacks, KillMidEpoch()], progress
 )
-module.run(compose_cfg(stage, overrides))
+runner.run(compose_cfg(stage, overrides))
 raise SystemExit("the stage finished: it was never killed")
 """
 
+TRAINING = {
+    "train_material": "pipeline.systems.material_training",
+    "train_lighting": "pipeline.systems.lighting_training",
+}
 STAGES = {
     "train_material": ["system_metrics=false"],
     "train_lighting": ["gbuffers=ground_truth"],
@@ -84,7 +89,7 @@ def killed(micro_shards, tmp_path_factory):
                 [
                     sys.executable,
                     "-c",
-                    KILLED_RUN.format(root=str(ROOT)),
+                    KILLED_RUN.format(root=str(ROOT), training=TRAINING),
                     stage,
                     json.dumps(overrides),
                     str(KILL_EPOCH),

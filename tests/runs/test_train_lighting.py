@@ -228,7 +228,7 @@ def test_unknown_test_weights_are_refused_by_name(micro_shards, tmp_path):
 def test_init_light_path_loads_an_exports_weights_or_names_what_differs(micro_shards, micro_exports, tmp_path):
     from pipeline.models.export import ExportError, save_light_export
     from pipeline.models.light_net import LightNet
-    from pipeline.runs.train_lighting import build_system, initialise_from_export
+    from pipeline.systems.lighting_training import build_system, initialise_from_export
 
     system = build_system(_cfg(micro_shards, tmp_path))
     export = micro_exports / "light.pt"

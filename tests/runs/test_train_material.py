@@ -40,7 +40,7 @@ def _cfg(shards, tmp, *extra):
 
 @pytest.mark.parametrize("option", BACKBONES)
 def test_every_backbone_composes_and_takes_a_training_step(micro_shards, tmp_path, option):
-    from pipeline.runs.train_material import build_datamodule, build_system
+    from pipeline.systems.material_training import build_datamodule, build_system
 
     cfg = _cfg(micro_shards, tmp_path, f"model/material_net={option}")
     preset = yaml.safe_load((CONF / "model" / "material_net" / f"{option}.yaml").read_text())

@@ -1,0 +1,298 @@
+"""The insertion and editing scoring of the `edit` stage, shared by `edit`, `ablate` (each LightNet preset
+is scored on the same cases) and the benches: the per-view context, every row's render of every case,
+the summary with paired bootstrap intervals, and the figure panels. What the stage does with them:
+`pipeline.runs.edit`.
+
+Stage `edit`: the lighting judged by what it is for. Objects inserted into, and materials edited in,
+held-out views are re-rendered through the MC render layer with LightNet as the incident radiance, and
+scored against Mitsuba renders of the same cases (written by `synthesize`, `pipeline.data.cases`).
+
+Rows, each rendering the same pixels (one seed per case, its own per view; rows on the same shading
+G-buffers draw the same directions: every row of an object case but the oracle, and the rows on
+predicted G-buffers of an edit):
+- `lightnet`: LightNet on the photo and the frozen MaterialNet's G-buffers (the method);
+- `lightnet_gt_gbuffers`: LightNet on the ground-truth G-buffers (what a perfect MaterialNet would give);
+- `constant`, `scaled_constant`: the content-blind lights of `train_lighting` (mean training radiance,
+  and the same at the photo's exposure);
+- `nearest_probe`: the ground-truth free-point probe nearest to the case as a distant environment map
+  (the best a single environment map can do, given the true light at one point);
+- `oracle`: Mitsuba's incident radiance for every sample ray (`data.synth.oracle`, `oracle.paths` path
+  samples each), on the ground-truth G-buffers, at `oracle.spp` samples per pixel: validates the
+  evaluation itself. Its directions are its own: with exact light, a diffuse pixel under a small lamp
+  needs many directions, which at the rows' 16 spp would make the oracle the noisiest row.
+Objects bring their own exact G-buffers in every row; edits apply the new material to the predicted
+G-buffers (rows on predictions) or the ground truth (`lightnet_gt_gbuffers`, `oracle`).
+
+Writes `reports/edit/metrics.json` (means per material class and edit kind; LightNet minus every other
+row with a paired bootstrap interval that resamples views, whose cases share a photo and predictions,
+and a verdict: +1 better, -1 worse, 0 no difference or a single view), `cases.csv` (every case and
+row), `timings.json`, `insertion.png` and `editing.png` (figure grids), all also to MLflow.
+
+Objects are placed where they truly are (their ground-truth G-buffers) in every row, so the LightNet
+row measures the light at that point as the method sees the scene: its SSRT marches the predicted depth
+(metres through the export's depth scale; zero outside the view's valid mask, as in `train_lighting`).
+"""
+
+from __future__ import annotations
+
+import json
+import time
+import zlib
+from pathlib import Path
+
+import numpy as np
+import torch
+from omegaconf import DictConfig, OmegaConf
+from torch.utils.data import DataLoader
+from tqdm import tqdm
+
+from pipeline.data import cases as case_io
+from pipeline.data import interiorverse as iv
+from pipeline.data.datasets import ShardDataset, collate_views
+from pipeline.data.lighting import ViewLighting
+from pipeline.data.synth import mitsuba_backend as mb
+from pipeline.data.synth.cases import InsertedObject, MaterialEdit
+from pipeline.data.synth.oracle import MitsubaOracle
+from pipeline.data.synth.scene import Room
+from pipeline.metrics.bootstrap import paired_bootstrap
+from pipeline.metrics.insertion import HIGHER_IS_BETTER, SCORES, case_scores, noise_floor_psnr
+from pipeline.models.insertion import (
+    composite_gbuffer,
+    composite_image,
+    edited_gbuffer,
+    light_net_radiance,
+    prepare_view,
+    render_case,
+)
+from pipeline.models.light_net import load_light_export
+from pipeline.models.material_net import load_material_export
+from pipeline.models.render_layer import MCRenderLayer
+from pipeline.ops.camera import backproject
+from pipeline.ops.envmap import sphere_lookup
+from pipeline.systems.lighting_baselines import constant_light, mean_training_radiance, scaled_constant_light
+
+ROWS = ("lightnet", "lightnet_gt_gbuffers", "constant", "scaled_constant", "nearest_probe", "oracle")
+FIGURE_ROWS = ("lightnet", "lightnet_gt_gbuffers", "scaled_constant", "nearest_probe", "oracle")
+
+
+def case_centre(case: case_io.Case, gt: dict, fov: float, w2v: np.ndarray) -> torch.Tensor:
+    """(3,) view-space centre of a case: the object's bounding centre, or the mean point of the edit."""
+    if case.kind == "object":
+        world = np.asarray(case.description["spheres"])[:, :3].mean(0)
+        return torch.from_numpy((world - w2v[:3, 3]) @ w2v[:3, :3]).float()
+    pts = backproject(gt["depth"], fov)[0].reshape(-1, 3)[case.pixel]
+    return pts.mean(0)
+
+
+def case_seed(view_seed: int, index: int) -> int:
+    """The render seed of the `index`-th case of a view whose seed is `view_seed` (`view_seed`): every row
+    of a case draws from it, so rows on the same shading G-buffers see the same directions."""
+    return int(view_seed) + 7919 * int(index)
+
+
+def score_view(ctx: dict, cases: list[case_io.Case], cfg: DictConfig, rows: tuple = ROWS) -> list[dict]:
+    """`rows` (all by default) of every case of one view:
+    [{"case", "rows": {row: scores}, "renders": {row: (M, 3)}}]."""
+    view = ctx["view"]
+    fov, gt, pred, photo, scale = view.fov, view.gt, view.pred, view.photo, view.scale
+    constants, free = ctx["constants"], ctx["light"].free
+    net, seed = view.net, int(ctx["seed"])
+    lights = {
+        "lightnet": light_net_radiance(net, view.ctx_pred, pred, fov, seed),
+        "lightnet_gt_gbuffers": light_net_radiance(net, view.ctx_gt, gt, fov, seed),
+        "constant": constant_light(constants),
+        "scaled_constant": scaled_constant_light(constants, scale),
+    }
+    out = []
+    for case in cases:
+        if case.kind == "object":
+            obj = {"albedo": case.albedo, "material": case.material, "normal": case.normal, "depth": case.depth}
+            shade_pred = composite_gbuffer(pred, case.pixel, **obj)
+            shade_gt = composite_gbuffer(gt, case.pixel, **obj)
+            oracle = ctx["oracle"].for_object(InsertedObject(**case.description)) if "oracle" in rows else None
+        else:
+            d = case.description
+            shade_pred = edited_gbuffer(pred, case.pixel, d["albedo"], d["roughness"], d["metallic"])
+            shade_gt = composite_gbuffer(gt, case.pixel, albedo=case.albedo, material=case.material)
+            oracle = ctx["oracle"].for_edit(MaterialEdit(**case.description)) if "oracle" in rows else None
+        centre = case_centre(case, gt, fov, ctx["w2v"])
+        probe = int(torch.argmin((free.position - centre).norm(dim=-1)))
+        probe_map = free.radiance[probe : probe + 1]
+        rows_light = {
+            **lights,
+            "nearest_probe": lambda idx, o, wi, b, m=probe_map: sphere_lookup(m, torch.zeros_like(b), wi),
+            "oracle": oracle,
+        }
+        renders, scores, seconds = {}, {}, {}
+        seed_of_case = case_seed(seed, len(out))
+        for row in rows:
+            shading = shade_gt if row in ("lightnet_gt_gbuffers", "oracle") else shade_pred
+            layer = ctx["oracle_layer"] if row == "oracle" else ctx["layer"]
+            t0 = time.perf_counter()
+            with torch.no_grad():
+                renders[row] = render_case(layer, shading, fov, case.pixel, rows_light[row], seed_of_case)
+            seconds[row] = time.perf_counter() - t0
+            scores[row] = case_scores(renders[row], case.radiance, photo, case.pixel, float(scale))
+        scores["ground_truth"] = {"noise_floor_psnr": noise_floor_psnr(case.radiance, case.stderr, float(scale))}
+        out.append({"case": case, "rows": scores, "renders": renders, "seconds": seconds})
+    return out
+
+
+def summarise(records: list[dict], resamples: int, seed: int, rows: tuple = ROWS) -> dict[str, float]:
+    """Means per group (material class of objects, kind of edits, and all of each) and paired bootstrap
+    intervals of LightNet minus every other row of `rows` (whose first is `lightnet`)."""
+    metrics: dict[str, float] = {}
+    groups: dict[str, list[dict]] = {}
+    for r in records:
+        prefix = "insert" if r["kind"] == "object" else "edit"
+        groups.setdefault(f"{prefix}/{r['label']}", []).append(r)
+        groups.setdefault(f"{prefix}/all", []).append(r)
+    for group, rs in sorted(groups.items()):
+        metrics[f"{group}/cases"] = float(len(rs))
+        for row in rows:
+            for s in SCORES:
+                metrics[f"{group}/{row}/{s}"] = float(np.mean([r[f"{row}/{s}"] for r in rs]))
+        # what an exact render would score against this ground truth, given the truth's own noise
+        metrics[f"{group}/ground_truth/noise_floor_psnr"] = float(
+            np.mean([r["ground_truth/noise_floor_psnr"] for r in rs])
+        )
+        for row in rows[1:]:
+            for s in SCORES:
+                diff = [r[f"lightnet/{s}"] - r[f"{row}/{s}"] for r in rs]
+                ci = paired_bootstrap(diff, resamples, seed, groups=[r["view"] for r in rs])
+                metrics[f"{group}/lightnet_minus_{row}/{s}_diff"] = ci["diff"]
+                if not np.isfinite(ci["lo"]):  # one view: no interval, and no verdict either way
+                    metrics[f"{group}/lightnet_minus_{row}/{s}_verdict"] = 0.0
+                    continue
+                metrics[f"{group}/lightnet_minus_{row}/{s}_lo"] = ci["lo"]
+                metrics[f"{group}/lightnet_minus_{row}/{s}_hi"] = ci["hi"]
+                better = ci["lo"] > 0 if HIGHER_IS_BETTER[s] else ci["hi"] < 0
+                worse = ci["hi"] < 0 if HIGHER_IS_BETTER[s] else ci["lo"] > 0
+                metrics[f"{group}/lightnet_minus_{row}/{s}_verdict"] = 1.0 if better else (-1.0 if worse else 0.0)
+    return metrics
+
+
+def case_panel(res: dict, photo: torch.Tensor, scale: float, view_id: str, rows: tuple = FIGURE_ROWS) -> dict:
+    """One `insertion_grid` panel of a scored case (`score_view`'s result `res`): the photo, Mitsuba's
+    ground truth and each of `rows` composited into the photo, with each row's PSNR."""
+    case = res["case"]
+    return {
+        "label": f"{view_id} {case.name} {case.label}",
+        "photo": photo.numpy(),
+        "scale": float(scale),
+        "pixels": case.pixel.numpy(),
+        "gt": composite_image(photo, case.pixel, case.radiance).numpy(),
+        "rows": {row: composite_image(photo, case.pixel, res["renders"][row]).numpy() for row in rows},
+        "psnr": {row: res["rows"][row]["psnr"] for row in rows},
+    }
+
+
+def figure_panels(results: list[dict], photo_of: dict, kind: str, n: int) -> list[dict]:
+    """The first `n` scored cases of `kind` (`object` or `edit`) as figure panels (`case_panel`);
+    photo_of: view id -> (photo, scale, view id)."""
+    picked = [res for res in results if res["case"].kind == kind][:n]
+    return [case_panel(res, *photo_of[res["view"]]) for res in picked]
+
+
+def _dataset_record(root: Path) -> dict:
+    path = root / "dataset.json"
+    try:
+        return json.loads(path.read_text())
+    except (OSError, json.JSONDecodeError) as exc:
+        raise iv.DatasetError(f"{path}: cannot read the generator's record ({exc})") from exc
+
+
+def view_seed(seed: int, view_id: str) -> int:
+    """A seed of its own for every view (and so every case), stable across runs: Monte Carlo errors of
+    different views are independent, as the bootstrap over views assumes."""
+    return (int(seed) * 1_000_003 + zlib.crc32(view_id.encode())) & 0x7FFFFFFF
+
+
+def stage_setup(cfg: DictConfig) -> dict:
+    """What every view shares: both networks, the constant lights, the render layers, the view list and
+    the views' `max_depth` (the oracle traces as the views were rendered). Sets the Mitsuba variant."""
+    from pipeline.systems.lighting import SSRT_DEPTHS
+
+    if cfg.ssrt_depth not in SSRT_DEPTHS:
+        raise ValueError(f"ssrt_depth={cfg.ssrt_depth!r}: choose one of {SSRT_DEPTHS}")
+    root = Path(cfg.data_root)
+    material_net, material_meta = load_material_export(cfg.material_path)
+    net, _ = load_light_export(cfg.light_path)
+    train = ShardDataset(cfg.data_dir, "train", lighting=True)
+    render = OmegaConf.to_container(cfg.render, resolve=True)
+    views = case_io.case_views(root, str(cfg.split))
+    mb.init_mitsuba(mb.choose_variant("auto"))
+    return {
+        "root": root,
+        "material": (material_net, material_meta),
+        "net": net.eval(),
+        "constants": mean_training_radiance(DataLoader(train, batch_size=16, collate_fn=collate_views)),
+        "layer": MCRenderLayer.from_config(render, "eval_spp"),
+        "oracle_layer": MCRenderLayer.from_config({**render, "spp": int(cfg.oracle.spp)}),
+        "views": views,
+        "max_depth": int(_dataset_record(root)["config"]["max_depth"]),
+    }
+
+
+def view_context(
+    shared: dict, scene: str, view: str, cfg: DictConfig, oracle: bool = True
+) -> tuple[dict, list[case_io.Case]]:
+    """One view read and checked, prepared (`prepare_view`: its G-buffers predicted, LightNet's contexts
+    of them and of the ground truth) and the oracle built: (the context `score_view` takes, the view's
+    cases)."""
+    root = shared["root"]
+    maps, cases, camera = case_io.read_case_view(root, scene, view, str(cfg.split))
+    light_file = iv.light_path(root, scene, view)
+    light = ViewLighting.from_arrays(iv.read_light(light_file))
+    if not len(light.free):
+        raise iv.DatasetError(f"{light_file}: no free-point probe (the nearest-probe row needs one)")
+    room = Room.from_json(json.loads((root / scene / "scene.json").read_text()))
+    # predicted depth is zeroed outside the view's valid mask too, as `train_lighting` feeds LightNet
+    mask = maps["mask"][..., 0] > 0.5
+    prepared = prepare_view(
+        maps["im"],
+        *shared["material"],
+        shared["net"],
+        float(camera["fov_x_deg"]),
+        mask=mask,
+        gt_maps=maps,
+        mask_prediction=cfg.ssrt_depth == "valid",
+    )
+    view_id = f"{scene}/{view}"
+    seed = view_seed(int(cfg.render.seed), view_id)
+    ctx = {
+        "id": view_id,
+        "seed": seed,
+        "view": prepared,
+        "layer": shared["layer"],
+        "oracle_layer": shared["oracle_layer"],
+        "constants": shared["constants"],
+        "light": light,
+        "w2v": np.asarray(camera["world_from_view"]),
+        "oracle": (
+            MitsubaOracle(room, room.cameras[int(view)], shared["max_depth"], int(cfg.oracle.paths), seed)
+            if oracle
+            else None
+        ),
+    }
+    return ctx, cases
+
+
+def score_rows(cfg: DictConfig, rows: tuple, progress: bool = False) -> tuple[dict[str, float], list[dict]]:
+    """The stage's summary metrics for `rows` only (the first `lightnet`), and the per-case records
+    ({view, kind, label, <row>/<score>}), without its files: what the ablations score every preset's
+    LightNet export (`cfg.light_path`) with."""
+    if rows[0] != "lightnet" or not set(rows) <= set(ROWS):
+        raise ValueError(f"rows={rows}: the first must be lightnet, all of {ROWS}")
+    shared = stage_setup(cfg)
+    records = []
+    for scene, view in tqdm(shared["views"], desc="insertion", unit="view", disable=not progress):
+        ctx, cases = view_context(shared, scene, view, cfg, oracle="oracle" in rows)
+        for res in score_view(ctx, cases, cfg, rows):
+            row = {"view": ctx["id"], "kind": res["case"].kind, "label": res["case"].label}
+            for name, sc in res["rows"].items():
+                row.update({f"{name}/{k}": v for k, v in sc.items()})
+            records.append(row)
+    if not records:
+        raise iv.DatasetError(f"{shared['root']}: the {cfg.split} views' case files list no case")
+    return summarise(records, int(cfg.bootstrap), int(cfg.seed), rows), records

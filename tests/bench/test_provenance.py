@@ -1,0 +1,45 @@
+"""Every bench JSON says which commit and which configuration it measured, and the results page marks a
+bench that did not measure the current profile's configuration."""
+
+import json
+import re
+
+import pytest
+
+from pipeline.bench import common
+from pipeline.tracking.results_page import provenance_line
+
+
+@pytest.fixture(autouse=True)
+def _fresh_record(monkeypatch):
+    monkeypatch.setattr(common, "COMPOSED", [])
+
+
+def test_a_bench_json_records_commit_profile_and_config_hash(tmp_path):
+    common.compose("train_lighting", ["profile=micro"])
+    path = common.write_report("probe", {"measured": {"x": 1.0}}, path=tmp_path / "probe.json")
+    prov = json.loads(path.read_text())["provenance"]
+    assert re.fullmatch(r"[0-9a-f]{40}", prov["commit"]) and isinstance(prov["dirty"], bool)
+    assert prov["profile"] == "micro" and re.fullmatch(r"\d{4}-\d\d-\d\d", prov["date"])
+    [config] = prov["configs"]
+    assert config["config"] == "train_lighting" and config["overrides"] == ["profile=micro"]
+    assert re.fullmatch(r"[0-9a-f]{16}", config["sha256"])
+
+
+def test_the_config_hash_follows_what_runs_not_where_files_are():
+    base = common.config_hash(common.compose("train_lighting", ["profile=micro"]))
+    assert common.config_hash(common.compose("train_lighting", ["profile=micro"])) == base
+    assert common.config_hash(common.compose("train_lighting", ["profile=micro", "paths.outputs=/elsewhere"])) == base
+    assert common.config_hash(common.compose("train_lighting", ["profile=micro", "render.spp=3"])) != base
+    assert common.config_hash(common.compose("train_lighting", ["profile=tiny"])) != base
+
+
+def test_the_page_marks_benches_not_measured_on_the_current_profile():
+    record = {"commit": "a" * 40, "dirty": False, "date": "2026-11-27", "configs": []}
+    assert "predates" in provenance_line({}, "tiny")  # measured before provenance was recorded
+    other = provenance_line({"provenance": {**record, "profile": "micro"}}, "tiny")
+    assert "Not the current profile's configuration" in other
+    same = provenance_line({"provenance": {**record, "profile": "tiny"}}, "tiny")
+    assert "commit aaaaaaaaaa" in same and "Not" not in same
+    own = provenance_line({"provenance": {**record, "profile": None}}, "tiny")
+    assert "Its own settings" in own
