@@ -354,7 +354,10 @@ def results_markdown(reports: Path, ablate_dir: Path, profile: str, claims: dict
     mat_rows, _ = table(runs, "train_material", MATERIAL_COLUMNS)
     claim_rows, _ = claims_table(runs)
     tables = ablation_tables(light_rows, mat_rows, claim_rows, runs, "../reports/ablate")
-    return render_results(reports, tables, profile)
+    counts: dict[str, int] = {}
+    for v in claim_verdicts(runs).values():
+        counts[v["verdict"]] = counts.get(v["verdict"], 0) + 1
+    return render_results(reports, tables, profile, counts)
 
 
 def figure_links(reports: Path, out: Path) -> list[str]:

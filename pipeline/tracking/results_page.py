@@ -106,13 +106,18 @@ def missing(section: str, path: Path) -> list[str]:
 
 def section_data(reports: Path) -> list[str]:
     syn, pre = read_json(reports / "synthesize/metrics.json"), read_json(reports / "preprocess/metrics.json")
-    lines = ["## Data", "", "From `reports/synthesize/metrics.json` and `reports/preprocess/metrics.json`.", ""]
+    lines = [
+        "## Data counters",
+        "",
+        "From `reports/synthesize/metrics.json` and `reports/preprocess/metrics.json`.",
+        "",
+    ]
     rows = [[f"synthesize: {k}", num(v)] for k, v in sorted((syn or {}).items()) if isinstance(v, int | float)]
     rows += [[f"preprocess: {k}", num(v)] for k, v in sorted((pre or {}).items()) if isinstance(v, int | float)]
     return lines + (md_table(["quantity", "value"], rows) if rows else ["No data reports."]) + [""]
 
 
-def section_material(reports: Path) -> list[str]:
+def section_material(reports: Path, facts: dict | None = None) -> list[str]:
     path = reports / "train_material/metrics.json"
     m = read_json(path)
     lines = ["## MaterialNet (`train_material`, test split)", ""]
@@ -139,8 +144,12 @@ def section_material(reports: Path) -> list[str]:
                 ci = interval(r["lo"], r["hi"])
             ratio = m.get(f"gate/{base}/{metric}")
             rows.append([metric, num(m.get(f"test/{metric}")), base, num(m[key]), num(ratio), ci])
+            if facts is not None:
+                facts.setdefault("material", []).append((metric, m.get(f"test/{metric}"), base, m[key], ratio, ci))
     lines += md_table(["metric", "model", "baseline", "baseline's", "gate ratio", "ratio 95 % interval"], rows)
     passed = m.get("gate/passed")
+    if facts is not None:
+        facts["material_gate"] = passed
     lines += [
         "",
         f"Gate passed: {'yes' if passed == 1 else 'no' if passed == 0 else 'n/a'}. "
@@ -151,7 +160,7 @@ def section_material(reports: Path) -> list[str]:
     return lines
 
 
-def section_lighting(reports: Path) -> list[str]:
+def section_lighting(reports: Path, facts: dict | None = None) -> list[str]:
     path = reports / "train_lighting/metrics.json"
     m = read_json(path)
     lines = ["## LightNet (`train_lighting`, test split)", ""]
@@ -161,6 +170,8 @@ def section_lighting(reports: Path) -> list[str]:
     lines += [
         f"From `{shown(reports, path)}`: each tested mode of the trained model (and the same network untrained),",
         "the constant lights and the probe oracles (which read the ground-truth probes) on the same views.",
+        "Each number is the stage's: the metric of each test batch's pooled pixels or texels, averaged over",
+        "batches (the per-view means in the paired table below are another aggregation and differ from it).",
         "",
     ]
     rows = []
@@ -175,14 +186,15 @@ def section_lighting(reports: Path) -> list[str]:
         lines += ["", "Re-render PSNR at probe pixels (dB): " + ", ".join(f"{k} {num(v)}" for k, v in probes.items())]
     views = read_views(reports / "train_lighting/test_views.csv")
     if views:
-        lines += ["", *paired_rows(views, "train_lighting/test_views.csv")]
+        lines += ["", *paired_rows(views, "train_lighting/test_views.csv", facts)]
     lines.append("")
     return lines
 
 
-def paired_rows(views: dict[str, np.ndarray], source: str) -> list[str]:
+def paired_rows(views: dict[str, np.ndarray], source: str, facts: dict | None = None) -> list[str]:
     """Paired per-view differences of the model's columns (`model/<metric>`, or `<mode>/<metric>` for
-    the first mode) against every other predictor's same metric, with bootstrap intervals."""
+    the first mode) against every other predictor's same metric, with bootstrap intervals; each is also
+    recorded in `facts["paired"]` under (metric, other predictor) with the two per-view means."""
     cols = [c for c in views if "/" in c]
     predictors = list(dict.fromkeys(c.split("/")[0] for c in cols))
     if not predictors:
@@ -199,16 +211,25 @@ def paired_rows(views: dict[str, np.ndarray], source: str) -> list[str]:
             continue
         d = paired_bootstrap(diff[scored], RESAMPLES, SEED)
         rows.append([metric, f"{model} - {who}", f"{int(d['n'])}", signed(d["diff"]), interval(d["lo"], d["hi"])])
-    head = [f"Paired per-view differences from `reports/{source}` (95 % bootstrap over views):", ""]
+        if facts is not None:
+            means = (float(views[f"{model}/{metric}"][scored].mean()), float(views[col][scored].mean()))
+            facts.setdefault("paired", {})[(metric, who)] = {**d, "means": means}
+    head = [
+        f"Paired per-view differences from `reports/{source}`: the mean over views of each view's own value",
+        "(95 % bootstrap over views):",
+        "",
+    ]
     return head + md_table(["metric", "difference", "views scored", "mean", "95 % interval"], rows)
 
 
-def section_edit(reports: Path) -> list[str]:
+def section_edit(reports: Path, facts: dict | None = None) -> list[str]:
     path = reports / "edit/metrics.json"
     m = read_json(path)
     lines = ["## Object insertion and material editing (`edit`)", ""]
     if m is None:
         return lines + missing("section", path)
+    if facts is not None:
+        facts["edit"] = m
     lines += [
         f"From `{shown(reports, path)}` and `reports/edit/timings.json`: PSNR (dB) on the case's pixels against",
         "Mitsuba's render of the same case. Differences are paired by case, with the stage's 95 % bootstrap",
@@ -345,7 +366,12 @@ def section_out_of_distribution(reports: Path) -> list[str]:
     lines += md_table(header, rows)
     light = {e: read_views(reports / f"evaluate/lightnet_{e}_views.csv") for e, _ in OOD_ENTRIES}
     if all(v is not None for v in light.values()):
-        lines += ["", "LightNet (the `train_lighting` export on MaterialNet's G-buffers), means over views:", ""]
+        lines += [
+            "",
+            "LightNet (the `train_lighting` export on MaterialNet's G-buffers): the mean over views of each view's",
+            "own value (as the paired table of the LightNet section, not the stage's per-batch figure):",
+            "",
+        ]
         rows = []
         for key, label in LIGHT_METRICS[:3]:
             cells = []
@@ -494,8 +520,64 @@ def section_benches(reports: Path, profile: str) -> list[str]:
     return lines
 
 
-SECTIONS: tuple[Callable[[Path], list[str]], ...] = (
-    section_data,
+def _ci(d: dict) -> str:
+    return f"{signed(d['diff'])} dB {interval(d['lo'], d['hi'])}"
+
+
+def section_findings(facts: dict, claim_counts: dict[str, int] | None) -> list[str]:
+    """The page's opening: one line per finding, each with its interval and the file it comes from, from
+    the numbers the sections below computed (`facts`) and the ablation verdicts (`claim_counts`)."""
+    lines = ["## Findings", ""]
+    gate, material = facts.get("material_gate"), facts.get("material", [])
+    if material:
+        normal = next((r for r in material if r[0] == "normal_angle_deg"), None)
+        worst = max((r for r in material if r[4] is not None), key=lambda r: r[4], default=None)
+        line = "- MaterialNet (test split): "
+        if normal:
+            line += f"normal error {num(normal[1])}° against {num(normal[3])}° for the {normal[2]} baseline; "
+        line += f"gate {'passed' if gate == 1 else 'not passed'}"
+        if worst:
+            line += f" (highest error ratio: {worst[0]} {num(worst[4])} of the {worst[2]} baseline's, {worst[5]})"
+        lines.append(line + ". `reports/train_material/`.")
+    paired = facts.get("paired", {})
+    render = next(
+        (v for (metric, who), v in paired.items() if metric == "render_psnr" and who == "scaled_constant"), None
+    )
+    if render:
+        lines.append(
+            f"- Re-render of the input (test split, mean over views): LightNet {num(render['means'][0])} dB, "
+            f"{_ci(render)} over the exposure-scaled constant light. `reports/train_lighting/test_views.csv`."
+        )
+    m = facts.get("edit")
+    if m:
+        spp = m.get("scoring_spp")
+        for group in ("mirror", "glossy", "diffuse", "all"):
+            cells = []
+            for who in ("nearest_probe", "scaled_constant"):
+                p = f"insert/{group}/lightnet_minus_{who}/psnr"
+                if f"{p}_lo" in m:
+                    cells.append(
+                        f"{_ci({'diff': m[f'{p}_diff'], 'lo': m[f'{p}_lo'], 'hi': m[f'{p}_hi']})} against {who}"
+                    )
+            if cells:
+                lines.append(
+                    f"- Insertion, {group} objects: LightNet {num(m.get(f'insert/{group}/lightnet/psnr'))} dB "
+                    f"(oracle {num(m.get(f'insert/{group}/oracle/psnr'))} dB); "
+                    + "; ".join(cells)
+                    + (f"; every row at {int(spp)} spp" if spp else "; rows scored at unequal samples")
+                    + ". `reports/edit/metrics.json`."
+                )
+    if claim_counts:
+        told = ", ".join(f"{n} {verdict}" for verdict, n in sorted(claim_counts.items()))
+        lines.append(
+            f"- Paper claims tested by the ablations (metrics, Holm-adjusted): {told}. `reports/report/ablations.md`."
+        )
+    if len(lines) == 2:
+        lines.append("No stage reports yet: run `dvc repro`.")
+    return [*lines, ""]
+
+
+SECTIONS: tuple[Callable[..., list[str]], ...] = (
     section_material,
     section_lighting,
     section_edit,
@@ -504,18 +586,29 @@ SECTIONS: tuple[Callable[[Path], list[str]], ...] = (
 )
 
 
-def render(reports: Path, ablation_tables: list[str], profile: str) -> str:
-    """The whole document from the reports under `reports` and the report stage's ablation tables."""
+def render(reports: Path, ablation_tables: list[str], profile: str, claim_counts: dict[str, int] | None = None) -> str:
+    """The whole document from the reports under `reports`, the report stage's ablation tables and its
+    count of claim verdicts: findings first, then each stage's section, the ablations, the benches and the
+    data counters."""
+    facts: dict = {}
+    body: list[str] = []
+    for section in SECTIONS:
+        body += (
+            section(reports, facts)
+            if section in (section_material, section_lighting, section_edit)
+            else section(reports)
+        )
     lines = [
         f"# Results ({profile})",
         "",
         "Written by the `report` stage (`dvc repro`) from the files under `reports/`; do not edit by hand.",
-        "Every interval is a 95 % bootstrap over test views computed by `pipeline.metrics.bootstrap`.",
+        "Intervals are 95 %; each table says how its are made: a bootstrap over test views (or images) for",
+        "the stage sections, a t interval over seeds for the ablation claims.",
         "Figures: [reports/report/summary.md](../reports/report/summary.md).",
         "",
+        *section_findings(facts, claim_counts),
+        *body,
     ]
-    for section in SECTIONS:
-        lines += section(reports)
     lines += [
         "## Ablations (`ablate`, `report`)",
         "",
@@ -525,4 +618,5 @@ def render(reports: Path, ablation_tables: list[str], profile: str) -> str:
         "",
     ]
     lines += section_benches(reports, profile)
+    lines += section_data(reports)
     return "\n".join(lines).rstrip() + "\n"
