@@ -135,7 +135,7 @@ def run(overrides: list[str], gains: tuple[float, ...], cases_csv: Path, progres
         "light_path": str(cfg.light_path),
         "material_path": str(cfg.material_path),
         "split": str(cfg.split),
-        "spp": int(cfg.render.eval_spp),
+        "spp": int(cfg.scoring.spp),
         "gains": list(gains),
         "classes": classes,
         "cases_csv": str(cases_csv),

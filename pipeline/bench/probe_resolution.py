@@ -223,7 +223,7 @@ def run(
 
     cfg = compose("edit", overrides)
     shared = insertion_scoring.stage_setup(cfg)
-    spp = int(cfg.oracle.spp) if spp is None else int(spp)
+    spp = int(cfg.scoring.spp) if spp is None else int(spp)
     fine_layer = MCRenderLayer.from_config({**OmegaConf.to_container(cfg.render, resolve=True), "spp": spp})
     oracle = _edit_oracle(edit_cases)
     names = [row_name(s) for s in sizes]
@@ -297,7 +297,7 @@ def run(
         "light_path": str(cfg.light_path),
         "material_path": str(cfg.material_path),
         "split": str(cfg.split),
-        "spp": {"lightnet, nearest_probe": int(cfg.render.eval_spp), "centre maps": spp},
+        "spp": {"lightnet, nearest_probe": int(cfg.scoring.spp), "centre maps": spp},
         "sizes": [list(s) for s in sizes],
         "strata": int(strata),
         "rows": rows,
@@ -346,7 +346,7 @@ def main(argv=None) -> None:
     p.add_argument("--material", default="outputs/train_material/model.pt", help="MaterialNet export")
     p.add_argument("--sizes", nargs="+", default=list(DEFAULT_SIZES), help="map sizes ROWSxCOLS")
     p.add_argument("--strata", type=int, default=8, help="k: k x k directions per texel (training probes: 8)")
-    p.add_argument("--spp", type=int, default=None, help="render spp of the centre maps (default: edit's oracle.spp)")
+    p.add_argument("--spp", type=int, default=None, help="render spp of the centre maps (default: edit's scoring.spp)")
     p.add_argument("--edit-cases", default="reports/edit/cases.csv", help="the edit stage's cases.csv ('' for none)")
     p.add_argument("--figure-cases", type=int, default=6, help="mirror cases in the crop figure")
     p.add_argument("--views", type=int, default=None, help="only the first N test views (a quick look)")

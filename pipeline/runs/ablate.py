@@ -187,6 +187,7 @@ def lighting_extras(
             f"light_path={export}",
             f"render={score_cfg.render.estimator}",  # the layer the preset is scored with
             f"bootstrap={int(cfg.bootstrap)}",
+            f"scoring.spp={int(cfg.insertion_spp)}",
         ],
     )
     rows = (

@@ -2,9 +2,11 @@
 held-out views are re-rendered through the MC render layer with LightNet as the incident radiance, and
 scored against Mitsuba renders of the same cases (written by `synthesize`, `pipeline.data.cases`).
 
-Rows, each rendering the same pixels (one seed per case, its own per view; rows on the same shading
-G-buffers draw the same directions: every row of an object case but the oracle, and the rows on
-predicted G-buffers of an edit):
+Rows, each rendering the same pixels with the same samples per pixel (`scoring.spp`, one layer for all:
+enough that no row's PSNR moves by more than 0.1 dB at 4x the samples, so noise, which penalises sharp
+light, favours no row) and one seed per case (its own per view; rows on the same shading G-buffers draw
+the same directions: every row of an object case, and the rows on predicted G-buffers of an edit and
+the rows on ground-truth ones):
 - `lightnet`: LightNet on the photo and the frozen MaterialNet's G-buffers (the method);
 - `lightnet_gt_gbuffers`: LightNet on the ground-truth G-buffers (what a perfect MaterialNet would give);
 - `constant`, `scaled_constant`: the content-blind lights of `train_lighting` (mean training radiance,
@@ -12,9 +14,7 @@ predicted G-buffers of an edit):
 - `nearest_probe`: the ground-truth free-point probe nearest to the case as a distant environment map
   (the best a single environment map can do, given the true light at one point);
 - `oracle`: Mitsuba's incident radiance for every sample ray (`data.synth.oracle`, `oracle.paths` path
-  samples each), on the ground-truth G-buffers, at `oracle.spp` samples per pixel: validates the
-  evaluation itself. Its directions are its own: with exact light, a diffuse pixel under a small lamp
-  needs many directions, which at the rows' 16 spp would make the oracle the noisiest row.
+  samples each), on the ground-truth G-buffers: validates the evaluation itself.
 Objects bring their own exact G-buffers in every row; edits apply the new material to the predicted
 G-buffers (rows on predictions) or the ground truth (`lightnet_gt_gbuffers`, `oracle`).
 
@@ -70,6 +70,7 @@ def run(cfg: DictConfig) -> dict[str, float]:
         if not records:
             raise iv.DatasetError(f"{shared['root']}: the {cfg.split} views' case files list no case")
         metrics = summarise(records, int(cfg.bootstrap), int(cfg.seed))
+        metrics["scoring_spp"] = float(cfg.scoring.spp)  # every row's samples per pixel
         report.mkdir(parents=True, exist_ok=True)
         with open(report / "cases.csv", "w", newline="") as fh:
             writer = csv.DictWriter(fh, fieldnames=list(records[0]))

@@ -7,9 +7,11 @@ Stage `edit`: the lighting judged by what it is for. Objects inserted into, and 
 held-out views are re-rendered through the MC render layer with LightNet as the incident radiance, and
 scored against Mitsuba renders of the same cases (written by `synthesize`, `pipeline.data.cases`).
 
-Rows, each rendering the same pixels (one seed per case, its own per view; rows on the same shading
-G-buffers draw the same directions: every row of an object case but the oracle, and the rows on
-predicted G-buffers of an edit):
+Rows, each rendering the same pixels with the same samples per pixel (`scoring.spp`, one layer for all:
+enough that no row's PSNR moves by more than 0.1 dB at 4x the samples, so noise, which penalises sharp
+light, favours no row) and one seed per case (its own per view; rows on the same shading G-buffers draw
+the same directions: every row of an object case, and the rows on predicted G-buffers of an edit and
+the rows on ground-truth ones):
 - `lightnet`: LightNet on the photo and the frozen MaterialNet's G-buffers (the method);
 - `lightnet_gt_gbuffers`: LightNet on the ground-truth G-buffers (what a perfect MaterialNet would give);
 - `constant`, `scaled_constant`: the content-blind lights of `train_lighting` (mean training radiance,
@@ -17,9 +19,7 @@ predicted G-buffers of an edit):
 - `nearest_probe`: the ground-truth free-point probe nearest to the case as a distant environment map
   (the best a single environment map can do, given the true light at one point);
 - `oracle`: Mitsuba's incident radiance for every sample ray (`data.synth.oracle`, `oracle.paths` path
-  samples each), on the ground-truth G-buffers, at `oracle.spp` samples per pixel: validates the
-  evaluation itself. Its directions are its own: with exact light, a diffuse pixel under a small lamp
-  needs many directions, which at the rows' 16 spp would make the oracle the noisiest row.
+  samples each), on the ground-truth G-buffers: validates the evaluation itself.
 Objects bring their own exact G-buffers in every row; edits apply the new material to the predicted
 G-buffers (rows on predictions) or the ground truth (`lightnet_gt_gbuffers`, `oracle`).
 
@@ -127,7 +127,7 @@ def score_view(ctx: dict, cases: list[case_io.Case], cfg: DictConfig, rows: tupl
         seed_of_case = case_seed(seed, len(out))
         for row in rows:
             shading = shade_gt if row in ("lightnet_gt_gbuffers", "oracle") else shade_pred
-            layer = ctx["oracle_layer"] if row == "oracle" else ctx["layer"]
+            layer = ctx["layer"]
             t0 = time.perf_counter()
             with torch.no_grad():
                 renders[row] = render_case(layer, shading, fov, case.pixel, rows_light[row], seed_of_case)
@@ -208,6 +208,16 @@ def view_seed(seed: int, view_id: str) -> int:
     return (int(seed) * 1_000_003 + zlib.crc32(view_id.encode())) & 0x7FFFFFFF
 
 
+def scoring_layer(cfg: DictConfig, spp: int | None = None) -> MCRenderLayer:
+    """The one render layer every row renders with: the configured estimator at `scoring.spp` (or `spp`)
+    samples per pixel."""
+    render = OmegaConf.to_container(cfg.render, resolve=True)
+    n = int(cfg.scoring.spp if spp is None else spp)
+    if n < 1:
+        raise ValueError(f"scoring.spp={n}: at least 1 sample per pixel")
+    return MCRenderLayer.from_config({**render, "spp": n})
+
+
 def stage_setup(cfg: DictConfig) -> dict:
     """What every view shares: both networks, the constant lights, the render layers, the view list and
     the views' `max_depth` (the oracle traces as the views were rendered). Sets the Mitsuba variant."""
@@ -219,7 +229,6 @@ def stage_setup(cfg: DictConfig) -> dict:
     material_net, material_meta = load_material_export(cfg.material_path)
     net, _ = load_light_export(cfg.light_path)
     train = ShardDataset(cfg.data_dir, "train", lighting=True)
-    render = OmegaConf.to_container(cfg.render, resolve=True)
     views = case_io.case_views(root, str(cfg.split))
     mb.init_mitsuba(mb.choose_variant("auto"))
     return {
@@ -227,8 +236,7 @@ def stage_setup(cfg: DictConfig) -> dict:
         "material": (material_net, material_meta),
         "net": net.eval(),
         "constants": mean_training_radiance(DataLoader(train, batch_size=16, collate_fn=collate_views)),
-        "layer": MCRenderLayer.from_config(render, "eval_spp"),
-        "oracle_layer": MCRenderLayer.from_config({**render, "spp": int(cfg.oracle.spp)}),
+        "layer": scoring_layer(cfg),
         "views": views,
         "max_depth": int(_dataset_record(root)["config"]["max_depth"]),
     }
@@ -265,7 +273,6 @@ def view_context(
         "seed": seed,
         "view": prepared,
         "layer": shared["layer"],
-        "oracle_layer": shared["oracle_layer"],
         "constants": shared["constants"],
         "light": light,
         "w2v": np.asarray(camera["world_from_view"]),

@@ -285,7 +285,7 @@ def test_rows_on_the_same_shading_draw_the_same_directions(micro_root, micro_sha
     cfg = compose_cfg(
         "edit",
         ["profile=micro", f"data_root={micro_root}", f"data_dir={micro_shards}"]
-        + [f"material_path={exports / 'material.pt'}", f"light_path={exports / 'light.pt'}", "oracle.spp=4"],
+        + [f"material_path={exports / 'material.pt'}", f"light_path={exports / 'light.pt'}", "scoring.spp=4"],
     )
     with pytest.raises(ValueError, match="ssrt_depth='all'"):
         stage_setup(compose_cfg("edit", ["ssrt_depth=all"]))
