@@ -56,6 +56,42 @@ def compose(name: str, overrides: list[str] | tuple[str, ...] = ()):
     return cfg
 
 
+def training_system(stage: str, overrides: list[str], seed: int):
+    """(system, optimiser, config) of a training stage (`train_lighting` or `train_material`) composed with
+    `seed` and `overrides`, built as the stage builds it, its logging silenced (outside Lightning a step's
+    logs go nowhere) and the stage's optimiser over the network's parameters: the one builder of the
+    benches that train."""
+    from hydra.utils import instantiate
+
+    from pipeline.systems import lighting_training, material_training
+
+    builders = {"train_lighting": lighting_training.build_system, "train_material": material_training.build_system}
+    if stage not in builders:
+        raise ValueError(f"stage={stage!r}: choose one of {sorted(builders)}")
+    cfg = compose(stage, [f"seed={seed}", *overrides])
+    torch.manual_seed(seed)
+    system = builders[stage](cfg)
+    system.log = lambda *args, **kwargs: None
+    return system, instantiate(cfg.optim.optimizer)(system.net.parameters()), cfg
+
+
+def gradient_clip(cfg) -> float:
+    """The stage's gradient-norm clip (`trainer.gradient_clip_val`; 0 for none)."""
+    return float(cfg.trainer.get("gradient_clip_val") or 0.0)
+
+
+def optimiser_step(system, optimizer, batch, step: int, clip: float) -> float:
+    """One training step as Lightning runs the stage's: the system's loss, backward, the gradient norm
+    clipped at `clip` (when > 0), the optimiser's step. Returns the loss."""
+    loss = system.training_step(batch, step)
+    optimizer.zero_grad(set_to_none=True)
+    loss.backward()
+    if clip > 0:
+        torch.nn.utils.clip_grad_norm_(system.net.parameters(), clip)
+    optimizer.step()
+    return float(loss.detach())
+
+
 def git_commit() -> tuple[str | None, bool | None]:
     """(HEAD's SHA, whether tracked files differ from it), or (None, None) outside a git checkout."""
     root = project_root()

@@ -30,27 +30,19 @@ import torch
 from matplotlib.figure import Figure
 from tqdm import tqdm
 
-from pipeline.bench.common import add_threads_option, apply_threads, publish
+from pipeline.bench.common import (
+    add_threads_option,
+    apply_threads,
+    gradient_clip,
+    optimiser_step,
+    publish,
+    training_system,
+)
 from pipeline.metrics.bootstrap import mean_bootstrap, paired_bootstrap
 
 CLASSES = ("mirror", "glossy", "diffuse", "all")
 REFERENCE_ROWS = ("lightnet", "scaled_constant", "nearest_probe")
 TEST_METRICS = ("render_psnr", "surf_light_nmse", "free_light_nmse")
-
-
-def build(overrides: list[str], seed: int):
-    """The `train_lighting` config, LightingSystem and optimiser under `overrides` (stage defaults)."""
-    from hydra.utils import instantiate
-
-    from pipeline.bench.common import compose
-    from pipeline.systems.lighting_training import build_system
-
-    torch.manual_seed(seed)
-    cfg = compose("train_lighting", [f"seed={seed}", *overrides])
-    system = build_system(cfg)
-    system.log = lambda *args, **kwargs: None  # outside Lightning: the step's logging goes nowhere
-    optimizer = instantiate(cfg.optim.optimizer)(system.net.parameters())
-    return cfg, system, optimizer
 
 
 def first_rooms_loader(data_dir: str, rooms: int, batch_size: int, seed: int):
@@ -84,12 +76,7 @@ def train(system, optimizer, loader, steps: int, clip: float, label: str) -> flo
     with tqdm(total=steps, desc=label, unit="step") as bar:
         while step < steps:
             for batch in loader:
-                loss = system.training_step(batch, step)
-                optimizer.zero_grad(set_to_none=True)
-                loss.backward()
-                if clip > 0:
-                    torch.nn.utils.clip_grad_norm_(system.net.parameters(), clip)
-                optimizer.step()
+                optimiser_step(system, optimizer, batch, step, clip)
                 scheduler.step()
                 step += 1
                 bar.update(1)
@@ -170,11 +157,11 @@ def run(rooms, steps: int, budgets, seed: int, data_dir: str, resamples: int, ov
     with tempfile.TemporaryDirectory() as scratch:
         # the reference run first, so every other run is compared with it as soon as it is scored
         for n, s in sorted(plan, key=lambda p: p != reference):
-            cfg, system, optimizer = build([f"data_dir={data_dir}", *overrides], seed)
+            system, optimizer, cfg = training_system("train_lighting", [f"data_dir={data_dir}", *overrides], seed)
             dm = InteriorVerseDataModule(cfg.data_dir, batch_size=int(cfg.batch_size), seed=seed, lighting=True)
             dm.setup("test")
             loader = first_rooms_loader(cfg.data_dir, n, int(cfg.batch_size), seed)
-            clip = float(cfg.trainer.get("gradient_clip_val") or 0.0)
+            clip = gradient_clip(cfg)
             seconds = train(system, optimizer, loader, s, clip, f"{n} rooms, {s} steps")
             rows = REFERENCE_ROWS if (n, s) == reference else ("lightnet",)
             scores, recs = score(system, cfg, dm.test_dataloader(), rows, seed, Path(scratch), edit_overrides)

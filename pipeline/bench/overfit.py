@@ -28,7 +28,14 @@ import torch
 from matplotlib.figure import Figure
 from tqdm import tqdm
 
-from pipeline.bench.common import add_threads_option, apply_threads, publish
+from pipeline.bench.common import (
+    add_threads_option,
+    apply_threads,
+    gradient_clip,
+    optimiser_step,
+    publish,
+    training_system,
+)
 from pipeline.bench.light_energy import RAY_CLASSES, tally_batches
 
 KINDS = ("surf", "free")
@@ -41,35 +48,6 @@ def parse_variant(text: str) -> tuple[str, list[str]]:
     if not name:
         raise ValueError(f"--variant {text!r}: give a name before ':'")
     return name, [o for o in rest.split(";") if o.strip()]
-
-
-def build(overrides: list[str], seed: int):
-    """The `train_lighting` LightingSystem (ground-truth G-buffers) and its optimiser under `overrides`."""
-    from hydra.utils import instantiate
-
-    from pipeline.bench.common import compose
-    from pipeline.systems.lighting_training import build_system
-
-    torch.manual_seed(seed)
-    cfg = compose("train_lighting", ["gbuffers=ground_truth", f"seed={seed}", *overrides])
-    system = build_system(cfg)
-    system.log = lambda *args, **kwargs: None  # outside Lightning: the step's logging goes nowhere
-    optimizer = instantiate(cfg.optim.optimizer)(system.net.parameters())
-    return system, optimizer, cfg
-
-
-def build_material(overrides: list[str], seed: int):
-    """The `train_material` MaterialSystem and its optimiser under `overrides`."""
-    from hydra.utils import instantiate
-
-    from pipeline.bench.common import compose
-    from pipeline.systems.material_training import build_system
-
-    torch.manual_seed(seed)
-    cfg = compose("train_material", [f"seed={seed}", *overrides])
-    system = build_system(cfg)
-    system.log = lambda *args, **kwargs: None
-    return system, instantiate(cfg.optim.optimizer)(system.net.parameters()), cfg
 
 
 MATERIAL_MAPS = ("metallic_mse", "roughness_mse", "albedo_mse")  # each against mean_material / mean_albedo
@@ -160,8 +138,10 @@ def plateaued(losses: list[float], window: int, min_gain: float) -> bool:
 
 
 def train_to_plateau(
-    system, optimizer, loader, plain, max_steps, eval_every, window, min_gain, label, score=evaluate
+    system, optimizer, loader, plain, max_steps, eval_every, window, min_gain, label, score=evaluate, clip=0.0
 ) -> dict:
+    """Steps of the stage's optimiser (`optimiser_step`, gradients clipped at `clip` as the stage clips them)
+    until `max_steps` or a plateau of the loss; `score` on `plain` every `eval_every` steps and at the end."""
     losses, curve = [], []
     step, t0, stop = 0, time.perf_counter(), "max_steps"
     system.train()
@@ -170,11 +150,7 @@ def train_to_plateau(
         for batch in loader:
             if step % eval_every == 0:
                 curve.append({"step": step, "seconds": time.perf_counter() - t0, **score(system, plain)})
-            loss = system.training_step(batch, step)
-            optimizer.zero_grad(set_to_none=True)
-            loss.backward()
-            optimizer.step()
-            losses.append(float(loss.detach()))
+            losses.append(optimiser_step(system, optimizer, batch, step, clip))
             step += 1
             bar.update(1)
             if step % eval_every == 0 and plateaued(losses, window, min_gain):
@@ -217,17 +193,19 @@ def run(
     for name, overrides in variants:
         for n in rooms:
             if network == "light":
-                system, optimizer, cfg = build(overrides, seed)
+                system, optimizer, cfg = training_system("train_lighting", ["gbuffers=ground_truth", *overrides], seed)
                 loader, plain = rooms_batches(data_dir, n, int(cfg.batch_size))
                 score = evaluate
             else:
-                system, optimizer, cfg = build_material(overrides, seed)
+                system, optimizer, cfg = training_system("train_material", overrides, seed)
                 loader, plain = rooms_batches(data_dir, n, int(cfg.batch_size), lighting=False)
                 score = evaluate_material
+            clip = gradient_clip(cfg)  # the stage's: a bench without it measures another optimiser
+            label = f"{name}, {n} rooms"
             row = train_to_plateau(
-                system, optimizer, loader, plain, max_steps, eval_every, window, min_gain, f"{name}, {n} rooms", score
+                system, optimizer, loader, plain, max_steps, eval_every, window, min_gain, label, score, clip
             )
-            report["runs"].append({"variant": name, "overrides": overrides, "rooms": n, **row})
+            report["runs"].append({"variant": name, "overrides": overrides, "rooms": n, "clip": clip, **row})
     return report
 
 

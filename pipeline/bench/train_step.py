@@ -27,7 +27,14 @@ import torch
 from matplotlib.figure import Figure
 from tqdm import tqdm
 
-from pipeline.bench.common import add_threads_option, apply_threads, publish
+from pipeline.bench.common import (
+    add_threads_option,
+    apply_threads,
+    gradient_clip,
+    optimiser_step,
+    publish,
+    training_system,
+)
 from pipeline.metrics.bootstrap import paired_bootstrap
 
 SETTINGS = (  # name, (cache MaterialNet's maps, recompute a single chunk, compiled SSRT)
@@ -41,38 +48,29 @@ SCORES = ("surf_light_nmse", "free_light_nmse", "surf_light_log_l1", "free_light
 
 def build(setting: tuple, seed: int, overrides: list[str]):
     """A `train_lighting` LightingSystem (tiny, predicted G-buffers) under `setting`, and its optimiser."""
-    from hydra.utils import instantiate
-
-    from pipeline.bench.common import compose
-    from pipeline.systems.lighting_training import build_system
-
     cache, recompute, compiled = setting
-    cfg = compose("train_lighting", [f"model.light_net.ssrt_compiled={str(compiled).lower()}", *overrides])
-    torch.manual_seed(seed)
-    system = build_system(cfg)
+    compiled_override = f"model.light_net.ssrt_compiled={str(compiled).lower()}"
+    system, optimizer, cfg = training_system("train_lighting", [compiled_override, *overrides], seed)
     system.cache_gbuffers = cache
     system.train_layer.checkpoint_chunks = recompute
-    system.log = lambda *args, **kwargs: None
-    return system, instantiate(cfg.optim.optimizer)(system.net.parameters()), cfg
+    return system, optimizer, cfg
 
 
-def step(system, optimizer, batch) -> float:
-    """One optimiser step; its wall time (s)."""
+def step(system, optimizer, batch, cfg) -> float:
+    """One optimiser step as the stage takes it (`optimiser_step`, the clip of `cfg`'s trainer); its wall
+    time (s)."""
     t0 = time.perf_counter()
-    loss = system.training_step(batch, 0)
-    optimizer.zero_grad(set_to_none=True)
-    loss.backward()
-    optimizer.step()
+    optimiser_step(system, optimizer, batch, 0, gradient_clip(cfg))
     return time.perf_counter() - t0
 
 
-def top_operations(system, optimizer, batches, rows: int = 15) -> list[dict]:
+def top_operations(system, optimizer, cfg, batches, rows: int = 15) -> list[dict]:
     """The profiler's operations with the most self CPU time over a pass of `batches`."""
     from torch.profiler import ProfilerActivity, profile
 
     with profile(activities=[ProfilerActivity.CPU]) as prof:
         for batch in batches:
-            step(system, optimizer, batch)
+            step(system, optimizer, batch, cfg)
     events = sorted(prof.key_averages(), key=lambda e: e.self_cpu_time_total, reverse=True)[:rows]
     total = sum(e.self_cpu_time_total for e in prof.key_averages())
     return [
@@ -129,14 +127,14 @@ def run(
     it = iter(dm.train_dataloader())
     train = [next(it) for _ in range(batches)]
     built = [(name, *build(s, seed, list(overrides))) for name, s in SETTINGS]
-    for name, system, opt, _ in built:  # warm-up: caches filled, kernels compiled
+    for name, system, opt, cfg in built:  # warm-up: caches filled, kernels compiled
         for batch in tqdm(train, desc=f"warm-up: {name}"):
-            step(system, opt, batch)
+            step(system, opt, batch, cfg)
     times = {name: [] for name, *_ in built}
     for _ in tqdm(range(rounds), desc="timed rounds"):
         for batch in train:
-            for name, system, opt, _ in built:
-                times[name].append(step(system, opt, batch))
+            for name, system, opt, cfg in built:
+                times[name].append(step(system, opt, batch, cfg))
     base = statistics.median(times[SETTINGS[0][0]])
     rows = [
         {
@@ -147,7 +145,7 @@ def run(
         }
         for name, t in times.items()
     ]
-    profiles = {built[i][0]: top_operations(built[i][1], built[i][2], train[:3]) for i in (0, -1)}
+    profiles = {built[i][0]: top_operations(*built[i][1:4], train[:3]) for i in (0, -1)}
     # equal results at equal steps: fresh copies of the first and last settings, same init, same batches
     pair = [build(SETTINGS[i][1], seed, list(overrides)) for i in (0, -1)]
     loader = dm.train_dataloader()
@@ -155,8 +153,8 @@ def run(
     bar = tqdm(total=steps, desc="paired training")
     while trained < steps:
         for batch in loader:
-            for system, opt, _ in pair:
-                step(system, opt, batch)
+            for system, opt, cfg in pair:
+                step(system, opt, batch, cfg)
             trained += 1
             bar.update(1)
             if trained >= steps:

@@ -33,6 +33,7 @@ def test_overfit_bench_runs_small(micro_shards, tmp_path):
     report = overfit.run(rooms=(2,), data_dir=str(micro_shards), max_steps=3, eval_every=2, window=1, min_gain=-1)
     (run,) = report["runs"]
     assert run["steps"] == 3 and run["stopped_by"] == "max_steps" and len(run["loss"]) == 3
+    assert run["clip"] == 1.0  # the stage's optimiser: conf/trainer/default.yaml's gradient clip
     assert [c["step"] for c in run["curve"]] == [0, 2, 3]
     for c in run["curve"]:
         assert math.isfinite(c["render_psnr"])
@@ -120,3 +121,23 @@ def test_learning_curve_bench_runs_small(micro_root, micro_shards, micro_exports
         learning_curve.first_rooms_loader(str(micro_shards), 10_000, 2, 0)
     learning_curve.plot(report, tmp_path / "lc.png")
     assert (tmp_path / "lc.png").stat().st_size > 10_000
+
+
+def test_optimiser_step_clips_the_gradient_norm_as_the_stage_does():
+    import torch
+
+    from pipeline.bench.common import optimiser_step
+
+    class Quadratic(torch.nn.Module):
+        def __init__(self):
+            super().__init__()
+            self.net = torch.nn.Linear(4, 1, bias=False)
+
+        def training_step(self, batch, step):
+            return 1e3 * self.net(batch).pow(2).sum()
+
+    model = Quadratic()
+    before = model.net.weight.detach().clone()
+    opt = torch.optim.SGD(model.net.parameters(), lr=1.0)
+    optimiser_step(model, opt, torch.ones(2, 4), 0, clip=0.5)
+    assert float((model.net.weight - before).norm()) == pytest.approx(0.5, rel=1e-5)  # SGD moves by the clipped norm
