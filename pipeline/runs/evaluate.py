@@ -131,14 +131,16 @@ def case_panels(net, meta, nyu: NYUTest, rows: list[dict], key: str, k: int) -> 
     return panels
 
 
-def light_system(profile: str, material_path: str, light_path: str, seed: int):
-    """`train_lighting`'s LightingSystem under `profile` (predicted G-buffers from the MaterialNet export
-    at `material_path`) holding the LightNet export at `light_path`, whose options must be the profile's
-    (`initialise_from_export`)."""
+def light_system(profile: str, material_path: str, light_path: str, seed: int, overrides=()):
+    """`train_lighting`'s LightingSystem under `profile` and `overrides` (predicted G-buffers from the
+    MaterialNet export at `material_path`) holding the LightNet export at `light_path`, whose options must
+    be the profile's (`initialise_from_export`)."""
     from pipeline.systems.lighting_training import build_system, initialise_from_export
     from pipeline.tracking.compose import compose
 
-    cfg = compose("train_lighting", [f"profile={profile}", f"seed={seed}", f"material_path={material_path}"])
+    cfg = compose(
+        "train_lighting", [f"profile={profile}", f"seed={seed}", f"material_path={material_path}", *overrides]
+    )
     system = build_system(cfg)
     initialise_from_export(system, light_path)
     return system
@@ -170,7 +172,7 @@ def out_of_distribution(cfg: DictConfig, report: Path) -> dict[str, float]:
             _write_csv(report / f"{name}_{entry}_views.csv", rows)
             summary = ood.material_summary(rows, resamples, seed)
             out.update({f"{name}/{entry}/{k.removeprefix('model/')}": v for k, v in summary.items()})
-    system = light_system(str(cfg.profile_name), cfg.models.trained, cfg.light_path, seed)
+    system = light_system(str(cfg.profile_name), cfg.models.trained, cfg.light_path, seed, list(cfg.light_overrides))
     for entry, dataset in sets.items():
         rows = ood.lighting_view_rows(system, dataset, constants)
         _write_csv(report / f"lightnet_{entry}_views.csv", rows)
