@@ -31,3 +31,11 @@ def test_bad_sample_counts_are_refused():
         from pipeline.systems.insertion_scoring import scoring_layer
 
         scoring_layer(compose_cfg("edit", ["scoring.spp=0"]))
+
+
+def test_plot_draws_each_class_against_spp(tmp_path):
+    spps = [4, 16, 64]
+    summary = sc.summarise(_records({4: 10.0, 16: 11.0, 64: 11.05}), spps, ("lightnet",), 0.1)
+    report = {"spp": spps, "configured_spp": 16, **summary}
+    sc.plot(report, tmp_path / "c.png")
+    assert (tmp_path / "c.png").stat().st_size > 1000
