@@ -1,17 +1,13 @@
 """The insertion and editing scoring of the `edit` stage, shared by `edit`, `ablate` (each LightNet preset
 is scored on the same cases) and the benches: the per-view context, every row's render of every case,
-the summary with paired bootstrap intervals, and the figure panels. What the stage does with them:
+the summary with paired bootstrap intervals, and the figure panels. What the stage writes with them:
 `pipeline.runs.edit`.
 
-Stage `edit`: the lighting judged by what it is for. Objects inserted into, and materials edited in,
-held-out views are re-rendered through the MC render layer with LightNet as the incident radiance, and
-scored against Mitsuba renders of the same cases (written by `synthesize`, `pipeline.data.cases`).
-
-Rows, each rendering the same pixels with the same samples per pixel (`scoring.spp`, one layer for all:
-enough that no row's PSNR moves by more than 0.1 dB at 4x the samples, so noise, which penalises sharp
-light, favours no row) and one seed per case (its own per view; rows on the same shading G-buffers draw
-the same directions: every row of an object case, and the rows on predicted G-buffers of an edit and
-the rows on ground-truth ones):
+Rows, each rendering the same pixels with the same samples per pixel (`scoring.spp`, one layer for all,
+so every row carries the same Monte Carlo noise, which penalises sharp light; whether the count is
+converged is measured by `bench.scoring_convergence`) and one seed per case (its own per view; rows on
+the same shading G-buffers draw the same directions: every row of an object case, and the rows on
+predicted G-buffers of an edit and the rows on ground-truth ones):
 - `lightnet`: LightNet on the photo and the frozen MaterialNet's G-buffers (the method);
 - `lightnet_gt_gbuffers`: LightNet on the ground-truth G-buffers (what a perfect MaterialNet would give);
 - `constant`, `scaled_constant`: the content-blind lights of `train_lighting` (mean training radiance,
@@ -21,16 +17,10 @@ the rows on ground-truth ones):
 - `oracle`: Mitsuba's incident radiance for every sample ray (`data.synth.oracle`, `oracle.paths` path
   samples each), on the ground-truth G-buffers: validates the evaluation itself.
 Objects bring their own exact G-buffers in every row; edits apply the new material to the predicted
-G-buffers (rows on predictions) or the ground truth (`lightnet_gt_gbuffers`, `oracle`).
-
-Writes `reports/edit/metrics.json` (means per material class and edit kind; LightNet minus every other
-row with a paired bootstrap interval that resamples views, whose cases share a photo and predictions,
-and a verdict: +1 better, -1 worse, 0 no difference or a single view), `cases.csv` (every case and
-row), `timings.json`, `insertion.png` and `editing.png` (figure grids), all also to MLflow.
-
-Objects are placed where they truly are (their ground-truth G-buffers) in every row, so the LightNet
-row measures the light at that point as the method sees the scene: its SSRT marches the predicted depth
-(metres through the export's depth scale; zero outside the view's valid mask, as in `train_lighting`).
+G-buffers (rows on predictions) or the ground truth (`lightnet_gt_gbuffers`, `oracle`). Objects are
+placed where they truly are (their ground-truth G-buffers) in every row, so the LightNet row measures the
+light at that point as the method sees the scene: its SSRT marches the predicted depth (metres through
+the export's depth scale; zero outside the view's valid mask, as in `train_lighting`).
 """
 
 from __future__ import annotations
