@@ -103,6 +103,12 @@ def git_commit() -> tuple[str | None, bool | None]:
     return sha.stdout.strip(), dirty.returncode != 0
 
 
+def _main_module() -> str:
+    """The module this process runs (`pipeline.bench.<name>` under `python -m`), else the script's name."""
+    spec = getattr(sys.modules.get("__main__"), "__spec__", None)
+    return spec.name if spec is not None else Path(sys.argv[0] if sys.argv else "?").stem
+
+
 def provenance() -> dict:
     """What a bench JSON says about its own run: commit, dirty tree, command, UTC date, the stage configs
     composed (`compose`) and their profile (None when it composed none: a bench of its own settings)."""
@@ -111,7 +117,7 @@ def provenance() -> dict:
     return {
         "commit": commit,
         "dirty": dirty,
-        "command": " ".join(["python", "-m", Path(sys.argv[0]).stem if sys.argv else "?", *sys.argv[1:]]),
+        "command": " ".join(["python", "-m", _main_module(), *sys.argv[1:]]),
         "date": datetime.datetime.now(datetime.UTC).strftime("%Y-%m-%d"),
         "profile": ",".join(profiles) if profiles else None,
         "configs": list(COMPOSED),

@@ -26,12 +26,7 @@ from tqdm import tqdm
 
 from pipeline.bench.common import write_report
 from pipeline.metrics.bootstrap import paired_bootstrap
-
-ROWS = ("lightnet", "lightnet_gt_gbuffers", "constant", "scaled_constant", "nearest_probe", "oracle")
-
-
-def case_class(kind: str, label: str) -> str:
-    return f"insert/{label}" if kind == "object" else f"edit/{label}"
+from pipeline.systems.insertion_scoring import ROWS, case_group
 
 
 def measure(
@@ -47,7 +42,7 @@ def measure(
     records = []
     for scene, view in tqdm(views, desc="scoring convergence", unit="view", disable=not progress):
         ctx, cases = insertion_scoring.view_context(shared, scene, view, cfg, oracle="oracle" in rows)
-        per_case = [{"view": ctx["id"], "class": case_class(c.kind, c.label), "psnr": {}} for c in cases]
+        per_case = [{"view": ctx["id"], "class": case_group(c.kind, c.label), "psnr": {}} for c in cases]
         for n, layer in layers.items():
             scored = insertion_scoring.score_view({**ctx, "layer": layer}, cases, cfg, rows)
             for rec, res in zip(per_case, scored, strict=True):

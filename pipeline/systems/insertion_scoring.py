@@ -128,15 +128,20 @@ def score_view(ctx: dict, cases: list[case_io.Case], cfg: DictConfig, rows: tupl
     return out
 
 
+def case_group(kind: str, label: str) -> str:
+    """The group a case is summarised in: `insert/<material class>` for objects, `edit/<kind>` for edits."""
+    return f"insert/{label}" if kind == "object" else f"edit/{label}"
+
+
 def summarise(records: list[dict], resamples: int, seed: int, rows: tuple = ROWS) -> dict[str, float]:
     """Means per group (material class of objects, kind of edits, and all of each) and paired bootstrap
     intervals of LightNet minus every other row of `rows` (whose first is `lightnet`)."""
     metrics: dict[str, float] = {}
     groups: dict[str, list[dict]] = {}
     for r in records:
-        prefix = "insert" if r["kind"] == "object" else "edit"
-        groups.setdefault(f"{prefix}/{r['label']}", []).append(r)
-        groups.setdefault(f"{prefix}/all", []).append(r)
+        group = case_group(r["kind"], r["label"])
+        groups.setdefault(group, []).append(r)
+        groups.setdefault(f"{group.split('/')[0]}/all", []).append(r)
     for group, rs in sorted(groups.items()):
         metrics[f"{group}/cases"] = float(len(rs))
         for row in rows:

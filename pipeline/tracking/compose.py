@@ -12,17 +12,19 @@ CONF_DIR = Path(__file__).resolve().parents[2] / "conf"
 PRESET_STAGES = {"common/lighting": "train_lighting", "common/material": "train_material"}
 
 
-def compose(name: str, overrides: list[str] | tuple[str, ...] = ()) -> DictConfig:
-    """`conf/<name>.yaml` composed with `overrides` (Hydra's Compose API, no working-dir change). The
+def compose(name: str, overrides: list[str] | tuple[str, ...] = (), return_hydra_config: bool = False) -> DictConfig:
+    """`conf/<name>.yaml` composed with `overrides` (Hydra's Compose API, no working-dir change), with
+    Hydra's own node (`hydra.runtime.choices`: the group options chosen) when `return_hydra_config`. The
     `${job_dir:...}` resolver is registered by importing this package, as every stage does."""
     from hydra import compose as hydra_compose
     from hydra import initialize_config_dir
     from hydra.core.global_hydra import GlobalHydra
 
+    kwargs = {"config_name": name, "overrides": list(overrides), "return_hydra_config": return_hydra_config}
     if GlobalHydra.instance().is_initialized():
-        return hydra_compose(config_name=name, overrides=list(overrides))
+        return hydra_compose(**kwargs)
     with initialize_config_dir(config_dir=str(CONF_DIR), version_base="1.3"):
-        return hydra_compose(config_name=name, overrides=list(overrides))
+        return hydra_compose(**kwargs)
 
 
 def preset_stage(preset: str) -> str:

@@ -6,8 +6,8 @@
 - Config: the files Hydra composes for the stage (its primary file, `base`, the group options it
   selects, an ablation preset's files), read from the composed config's `hydra.runtime.choices`.
 - The profile (`conf/profile/<profile>.yaml`, a `_global_` package every stage composes) is a params dep
-  on the top-level keys the stage can read: those its other config files interpolate or define, and
-  those its code names (`cfg.<key>`, `"<key>"`). Other profile edits leave the stage alone.
+  on the top-level keys the stage can read: those its other config files interpolate, and those its
+  code names outside import lines (`cfg.<key>`, `"<key>"`). Other profile edits leave the stage alone.
 - Each `ablate@<preset>-s<seed>` entry: the ablate stage's closure and config, plus the files its preset
   composes for the training stage and for scoring: `${item.conf[i]}`, one slot per file, from the `conf`
   list this module writes into the entry in params.yaml (DVC cannot splice a list into deps; a shorter
@@ -87,13 +87,11 @@ def composed_files(config: str, overrides: tuple[str, ...]) -> tuple[str, ...]:
     """The conf/ files Hydra composes for `conf/<config>.yaml` with `overrides` (repo-relative): the
     primary file, the plain entries of its defaults list (`base`) and every group option chosen."""
     import yaml
-    from hydra import compose, initialize_config_dir
-    from hydra.core.global_hydra import GlobalHydra
+
+    from pipeline.tracking.compose import compose
 
     conf = ROOT / "conf"
-    GlobalHydra.instance().clear()
-    with initialize_config_dir(config_dir=str(conf), version_base="1.3"):
-        cfg = compose(config_name=config, overrides=list(overrides), return_hydra_config=True)
+    cfg = compose(config, overrides, return_hydra_config=True)
     files = {conf / f"{config}.yaml"}
     for group, option in cfg.hydra.runtime.choices.items():
         if option is not None and (conf / group / f"{option}.yaml").is_file():
@@ -157,8 +155,8 @@ def stage_inputs(stage: str, profile: str, extra_configs: tuple[tuple[str, tuple
     configs = {(stage, ()), *extra_configs}
     done: set = set()
     conf: set[str] = set()
-    modules: set[str] = set()
-    while configs - done:
+    code: list[str] = []
+    while configs - done:  # a config's `_target_` modules may compose further configs at run time
         for config, extra in sorted(configs - done):
             conf |= set(composed_files(config, (*overrides, *extra)))
             done.add((config, extra))
@@ -166,7 +164,6 @@ def stage_inputs(stage: str, profile: str, extra_configs: tuple[tuple[str, tuple
         code = sorted(_rel(module_file(m)) for m in modules)
         configs |= {(name, ()) for name in runtime_configs(code)}
     conf.discard(f"conf/profile/{profile}.yaml")  # a params dep on the keys read (`profile_keys`)
-    code = sorted(_rel(module_file(m)) for m in modules)
     return {"code": code, "conf": sorted(conf), "profile_keys": profile_keys(profile, sorted(conf), code)}
 
 
@@ -174,17 +171,12 @@ def preset_configs(preset: str, profile: str) -> tuple[tuple[str, tuple[str, ...
     """What `ablate` composes for one preset: its training stage with `ablation=<preset>`, and for a
     LightNet preset the same with the scoring layer (`scoring.render`) and the `edit` config it scores
     insertion with (`pipeline.runs.ablate`)."""
-    from hydra import compose, initialize_config_dir
-    from hydra.core.global_hydra import GlobalHydra
-
-    from pipeline.tracking.compose import preset_stage
+    from pipeline.tracking.compose import compose, preset_stage
 
     stage = preset_stage(preset)
     configs = [(stage, (f"ablation={preset}",))]
     if stage == "train_lighting":
-        GlobalHydra.instance().clear()
-        with initialize_config_dir(config_dir=str(ROOT / "conf"), version_base="1.3"):
-            cfg = compose(config_name=stage, overrides=[f"profile={profile}", f"ablation={preset}"])
+        cfg = compose(stage, [f"profile={profile}", f"ablation={preset}"])
         configs.append((stage, (f"ablation={preset}", f"render={cfg.scoring.render}")))
         configs.append(("edit", ()))
     return tuple(configs)
