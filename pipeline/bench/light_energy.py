@@ -162,7 +162,7 @@ def tally_batches(system, batches) -> dict[str, EnergyTally]:
         gen = system.eval_generator()
         fov = system.fov(batch)
         gb = system.gbuffers(batch)
-        ctx = system.net.encode(batch["im"], gb["depth"], fov)
+        ctx = system.net.encode(batch["im"], gb["depth"], fov, normal=gb["normal"])
         for kind in KINDS:
             rays = probe_rays(batch["light"], kind)
             if rays is None:

@@ -70,7 +70,7 @@ def _mode_row(mode: str, H: int, W: int, repeats: int) -> dict:
     bidx = torch.zeros(len(o), dtype=torch.long)
     torch.manual_seed(0)
     net = LightNet(mode=mode, **SMALL).eval()
-    ctx = net.encode(im, gb["depth"], fov)
+    ctx = net.encode(im, gb["depth"], fov, normal=gb["normal"])
     sec = median_seconds(lambda: net(ctx, gb, fov, o, wi, bidx), repeats)
     row = {"height": H, "width": W, "mode": mode, "rays": len(o), "queries_per_second": len(o) / sec}
     if mode != "mixed":
@@ -84,7 +84,7 @@ def _mode_row(mode: str, H: int, W: int, repeats: int) -> dict:
         repeats,
     )
     t_out = median_seconds(
-        lambda: net.out_of_view.query(ctx["feature"], ctx["params"], ctx["unit"], ctx["bounds"], bidx, o, wi),
+        lambda: net.out_of_view_radiance(ctx, bidx, o, wi),
         repeats,
     )
     row["local_queries_per_second"] = len(h) / t_local
@@ -125,7 +125,7 @@ def rerender(H: int, W: int, repeats: int, spp: int = 16) -> list[dict]:
             out_threshold=setting.get("out_threshold", 0.0),
             **SMALL,
         ).eval()
-        ctx = net.encode(im, gb["depth"], fov)
+        ctx = net.encode(im, gb["depth"], fov, normal=gb["normal"])
         counting = {"out": 0, "rays": 0}
 
         def radiance(k, o, d, b, net=net, ctx=ctx, counting=counting):

@@ -196,8 +196,8 @@ def prepare_view(
     gt = gbuffers_from_maps(gt_maps, mask) if gt_maps is not None else None
     net = light_net.eval()
     with torch.no_grad():
-        ctx_pred = net.encode(image, pred["depth"], fov)
-        ctx_gt = net.encode(image, gt["depth"], fov) if gt is not None else None
+        ctx_pred = net.encode(image, pred["depth"], fov, normal=pred["normal"])
+        ctx_gt = net.encode(image, gt["depth"], fov, normal=gt["normal"]) if gt is not None else None
     return PreparedView(
         photo=image[0].permute(1, 2, 0),
         image=image,

@@ -228,6 +228,7 @@ PAPER_LIGHT_NET = {
         "cap": None,
     },
     "out_of_view": {
+        "kind": "nerf",
         "backbone": "resnet34",
         "feature_dim": None,
         "hyper": {

@@ -135,7 +135,7 @@ def full_frame_render(system, batch) -> torch.Tensor:
     gen = system.eval_generator()
     fov = system.fov(batch)
     gb = system.gbuffers(batch)
-    ctx = system.net.encode(batch["im"], gb["depth"], fov)
+    ctx = system.net.encode(batch["im"], gb["depth"], fov, normal=gb["normal"])
     pix = torch.nonzero(batch["mask"][:, 0].reshape(-1)).squeeze(-1)
     rgb, _ = system.eval_layer.render_pixels(gb, fov, pix, system.light_fn(ctx, gb, fov, gen), gen)
     return rgb
@@ -252,7 +252,7 @@ def glossy_render(system, loader, glossy: DictConfig) -> tuple[dict[str, float],
             continue
         gen = system.eval_generator()
         fov, gb = system.fov(batch), system.gbuffers(batch)
-        ctx = system.net.encode(batch["im"], gb["depth"], fov)
+        ctx = system.net.encode(batch["im"], gb["depth"], fov, normal=gb["normal"])
         rgb, b = system.eval_layer.render_pixels(gb, fov, pix, system.light_fn(ctx, gb, fov, gen), gen)
         score = psnr_tonemapped(rgb, pixel_values(batch["im"], pix), ctx["scale"][b])
         per_view.append({"id": batch["id"][0], "pixels": len(pix), "psnr": float(score)})
@@ -286,7 +286,7 @@ def layer_figure(system, trained_layer, batch: dict, glossy: DictConfig, path: P
     window[top : top + h, left : left + w] = True
     pix = torch.nonzero((window & mask).reshape(-1)).squeeze(-1)
     fov, gb = system.fov(batch), system.gbuffers(batch)
-    ctx = system.net.encode(batch["im"], gb["depth"], fov)
+    ctx = system.net.encode(batch["im"], gb["depth"], fov, normal=gb["normal"])
     target = pixel_values(batch["im"], pix)
     scale = ctx["scale"][0]
     glossy_sel = gloss.reshape(-1)[pix]

@@ -200,7 +200,7 @@ class LightingSystem(L.LightningModule):
     def training_step(self, batch, batch_idx):
         fov = self.fov(batch)
         gb = self.gbuffers(batch)
-        ctx = self.net.encode(batch["im"], gb["depth"], fov)
+        ctx = self.net.encode(batch["im"], gb["depth"], fov, normal=gb["normal"])
         scale = ctx["scale"]
         losses = {}
         parts = [
@@ -239,7 +239,7 @@ class LightingSystem(L.LightningModule):
         gen = self.eval_generator()
         fov = self.fov(batch)
         gb = self.gbuffers(batch)
-        ctx = self.net.encode(batch["im"], gb["depth"], fov)
+        ctx = self.net.encode(batch["im"], gb["depth"], fov, normal=gb["normal"])
         out = {}
         for kind in ("surf", "free"):
             rays = probe_rays(batch["light"], kind)

@@ -200,7 +200,7 @@ def baseline_metrics(batch: dict, constants: Constants, system, views: list[dict
         probe_pix,
         lambda idx, o, wi, b: hemisphere_lookup(rads, idx, normals[idx], wi),
     )
-    ctx = system.net.encode(batch["im"], model_gb["depth"], fov)
+    ctx = system.net.encode(batch["im"], model_gb["depth"], fov, normal=model_gb["normal"])
     gen = system.eval_generator()
     rgb, b = layer.render_pixels(model_gb, fov, probe_pix, system.light_fn(ctx, model_gb, fov, gen), gen)
     target = pixel_values(batch["im"], probe_pix)

@@ -37,7 +37,7 @@ def rerender_views(system: LightingSystem, batch: dict, constants: Constants, st
     the photo's exposure (the `scaled_constant` baseline); same directions."""
     fov = system.fov(batch)
     gb = system.gbuffers(batch)
-    ctx = system.net.encode(batch["im"], gb["depth"], fov)
+    ctx = system.net.encode(batch["im"], gb["depth"], fov, normal=gb["normal"])
     scale = ctx["scale"]
     pix = grid_pixels(batch["mask"][:, 0], stride)
     layer, gen = system.eval_layer, system.eval_generator()
@@ -85,7 +85,7 @@ def probe_envmaps(system: LightingSystem, batch: dict, surface: int = 2, free: i
     probe lists), each with its ground-truth map and LightNet's prediction at the same texel directions."""
     fov = system.fov(batch)
     gb = system.gbuffers(batch)
-    ctx = system.net.encode(batch["im"], gb["depth"], fov)
+    ctx = system.net.encode(batch["im"], gb["depth"], fov, normal=gb["normal"])
     rows = []
     for v, light in enumerate(batch["light"]):
         inp = batch["im"][v].permute(1, 2, 0).float().cpu().numpy()

@@ -9,6 +9,11 @@ Modes: `mixed` (the paper), `ssrt_only` (misses get no light), `out_of_view_only
 in `mixed` the out-of-view branch is queried only for rays with u >= `out_threshold`; below it a ray
 keeps L_ssrt alone (its u < threshold share of L_out is dropped). `out_threshold=0` queries every ray.
 
+Out-of-view kinds (`out_of_view.kind`): `nerf` (the paper: a hypernetwork NeRF, `branches.OutOfViewBranch`)
+or `roombox` (textures on the room's box, `roombox.RoomBoxBranch`); the nerf keys of `out_of_view` are read
+by `nerf` only, the `roombox` block by `roombox` only (with the shared `backbone`, `far_field`,
+`dir_frequencies`).
+
 gap_units: the depth gap in u = tanh(k gap) is in `metres` (this project) or `window` (the released
 code: OpenGL window depth of the view divided by its largest depth, so k = 10 means what it meant there;
 `pipeline.ops.camera.window_depth_difference`).
@@ -20,6 +25,7 @@ import torch
 from torch import nn
 
 from pipeline.models.light_net.branches import LocalBranch, OutOfViewBranch, image_scale
+from pipeline.models.light_net.roombox import RoomBoxBranch
 from pipeline.ops import ssrt
 from pipeline.ops.brdf import f0
 from pipeline.ops.camera import depth_range, window_depth_difference
@@ -31,6 +37,8 @@ GAP_UNITS = ("metres", "window")
 # mean (exposure-invariant); absolute: the released LightNet's convention, the raw HDR image in and radiance
 # in the image's own units out (what `invrender import-released lightnet` exports)
 UNITS = ("image_mean", "absolute")
+OUT_OF_VIEW_KINDS = ("nerf", "roombox")
+SHARED_OUT_OF_VIEW_KEYS = ("backbone", "far_field", "dir_frequencies")  # what roombox reads beside its block
 
 
 def blend(l_ssrt: torch.Tensor, l_out: torch.Tensor, u: torch.Tensor) -> torch.Tensor:
@@ -69,10 +77,12 @@ class LightNet(nn.Module):
             raise ValueError(f"model.light_net.out_threshold={out_threshold}: must be in [0, 1]")
         self.mode, self.k, self.out_threshold, self.ssrt_compiled = mode, float(k), float(out_threshold), ssrt_compiled
         self.local = LocalBranch(**(local or {})) if mode != "out_of_view_only" else None
-        self.out_of_view = OutOfViewBranch(**(out_of_view or {})) if mode != "ssrt_only" else None
+        self.out_of_view = out_of_view_branch(out_of_view) if mode != "ssrt_only" else None
 
-    def encode(self, im: torch.Tensor, depth: torch.Tensor, fov_x) -> dict:
-        """Per-image context: im (B, 3, H, W) HDR, depth (B, H, W) z-depth metres, fov_x float or (B,)."""
+    def encode(self, im: torch.Tensor, depth: torch.Tensor, fov_x, normal=None, box=None) -> dict:
+        """Per-image context: im (B, 3, H, W) HDR, depth (B, H, W) z-depth metres, fov_x float or (B,);
+        normal (B, 3, H, W) view space, read by the roombox branch (None: it derives them from the depth);
+        box (rotation (B, 3, 3), lo, hi (B, 3)): the true room box for the roombox branch's `layout: gt`."""
         # scale: the image's exposure (what losses and metrics normalise by); unit: what the branches'
         # outputs are multiplied by, the same in image_mean units and 1 in absolute ones
         normalise = self.units == "image_mean"
@@ -86,7 +96,10 @@ class LightNet(nn.Module):
         if self.local is not None:
             ctx["local"] = self.local.encode(im, normalise)
             ctx["image"] = im.clamp(min=0) / ctx["unit"].view(-1, 1, 1, 1)
-        if self.out_of_view is not None:
+        if isinstance(self.out_of_view, RoomBoxBranch):
+            ctx["room"] = self.out_of_view.encode(im, ctx["unit"], depth, fov_x, normal, normalise, box)
+            ctx["feature"], ctx["params"] = ctx["room"]["code"], None
+        elif self.out_of_view is not None:
             ctx["feature"], ctx["params"] = self.out_of_view.encode(im, normalise)
         return ctx
 
@@ -114,25 +127,28 @@ class LightNet(nn.Module):
         q = torch.nonzero(need).squeeze(-1)
         l_out = wi.new_zeros(N, 3)
         if q.numel():
-            l_out = l_out.index_put(
-                (q,),
-                self.out_of_view.query(
-                    ctx["feature"],
-                    ctx["params"],
-                    ctx["unit"],
-                    ctx.get("bounds"),
-                    batch_index[q],
-                    origin[q],
-                    wi[q],
-                    generator,
-                    depth_max=ctx.get("depth_max"),
-                ),
-            )
+            l_out = l_out.index_put((q,), self.out_of_view_radiance(ctx, batch_index[q], origin[q], wi[q], generator))
         if self.mode == "out_of_view_only":
             radiance = l_out
         else:
             radiance = torch.where(need.unsqueeze(-1), blend(l_ssrt, l_out, u), l_ssrt)
         return {"radiance": radiance, "u": u, "hit": hit, "out_queries": int(q.numel())}
+
+    def out_of_view_radiance(self, ctx: dict, batch_index, origin, wi, generator=None) -> torch.Tensor:
+        """The out-of-view branch's radiance (N, 3) for rays origin, wi (N, 3) of images batch_index (N,)."""
+        if isinstance(self.out_of_view, RoomBoxBranch):
+            return self.out_of_view.query(ctx["room"], ctx["unit"], batch_index, origin, wi)
+        return self.out_of_view.query(
+            ctx["feature"],
+            ctx["params"],
+            ctx["unit"],
+            ctx.get("bounds"),
+            batch_index,
+            origin,
+            wi,
+            generator,
+            depth_max=ctx.get("depth_max"),
+        )
 
     @staticmethod
     def _window_gap(ctx, depth, pixel, hit, gap, batch_index) -> torch.Tensor:
@@ -144,6 +160,19 @@ class LightNet(nn.Module):
         z_s = depth[b, pixel[h, 0], pixel[h, 1]].to(gap.dtype)
         win = window_depth_difference(z_s, z_s + gap[h], ctx["depth_min"][b], ctx["depth_max"][b])
         return gap.index_put((h,), win.to(gap.dtype))
+
+
+def out_of_view_branch(config: dict | None):
+    """The out-of-view branch `config["kind"]` names (default nerf), built from the keys that kind reads."""
+    config = dict(config or {})
+    kind = config.pop("kind", "nerf")
+    roombox = dict(config.pop("roombox", None) or {})
+    if kind not in OUT_OF_VIEW_KINDS:
+        raise ValueError(f"model.light_net.out_of_view.kind={kind!r}: choose one of {OUT_OF_VIEW_KINDS}")
+    if kind == "nerf":
+        return OutOfViewBranch(**config)
+    shared = {k: config[k] for k in SHARED_OUT_OF_VIEW_KEYS if k in config}
+    return RoomBoxBranch(**shared, **roombox)
 
 
 def trace_views(gbuffer: dict, fov_x, origin, wi, batch_index, compiled: bool = False):
