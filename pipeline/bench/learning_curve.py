@@ -86,10 +86,11 @@ def train(system, optimizer, loader, steps: int, clip: float, label: str) -> flo
 
 
 def score(
-    system, cfg, test_loader, rows: tuple, seed: int, export_dir: Path, edit_overrides=()
+    system, cfg, test_loader, rows: tuple, seed: int, export_dir: Path, edit_overrides=(), views=None
 ) -> tuple[dict, list[dict]]:
-    """Test-split metrics of the trained system: `TEST_METRICS` and the insertion means per class for
-    `rows` (the edit stage's `insert/<class>/<row>/psnr`), and the per-case insertion records."""
+    """Test-split metrics of the trained system: `TEST_METRICS` (views: a list each view's own test
+    metrics are appended to, `test_scores`) and the insertion means per class for `rows` (the edit
+    stage's `insert/<class>/<row>/psnr`), and the per-case insertion records."""
     from omegaconf import OmegaConf
 
     from pipeline.bench.common import compose
@@ -97,7 +98,7 @@ def score(
     from pipeline.systems import insertion_scoring
     from pipeline.systems.lighting_training import test_scores
 
-    tested = test_scores(system, test_loader)
+    tested = test_scores(system, test_loader, views)
     out = {k: float(tested[k]) for k in TEST_METRICS}
     path = export_dir / "light.pt"
     save_light_export(path, system.hparams["light_net"], system.net)

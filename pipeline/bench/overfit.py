@@ -16,16 +16,25 @@ free): the pooled normalised MSE, its energy and placement parts and each ray cl
 With `--network material` the same for MaterialNet (`train_material`'s step and schedule-free optimiser on
 the rooms alone): every map's error on those rooms over the error of the rooms' own mean (the mean
 baselines of the metallic gate, fitted on the same rooms), metallic first.
+With the NeRF branch, each light run also ends with its `walls`: on the miss rays of the rooms' probes,
+where the volume puts its compositing weight against the true distance to the room's wall (from the room
+file): the weight-averaged distance's relative error, the share of the weight within 20 % of the wall,
+the volume's opacity and the far field's share. A variant with the override `+bench.room_embedding=true`
+replaces the branch's image feature by a free vector per room (started at the room's image feature):
+whether the image encoder is what keeps the NeRF from memorising.
 Writes reports/bench/overfit.json (or `--name`) and a PNG of those curves against steps.
 """
 
 from __future__ import annotations
 
 import argparse
+import json
 import time
+from pathlib import Path
 
 import torch
 from matplotlib.figure import Figure
+from omegaconf import OmegaConf
 from tqdm import tqdm
 
 from pipeline.bench.common import (
@@ -127,6 +136,99 @@ def evaluate(system, plain) -> dict:
     return out
 
 
+@torch.no_grad()
+def wall_agreement(system, plain, source_root: Path) -> dict | None:
+    """Where the NeRF branch's volume puts its weight on the miss rays of the rooms' probe texels (one
+    direction per texel, its centre) against the true distance t_wall to the room's box: the median of
+    |E_w[t] - t_wall| / t_wall (E_w the compositing-weight average, rays with opacity >= 0.05), the mean
+    share of the weight within 20 % of t_wall, the mean opacity and the mean far-field share (the
+    transmittance left). None for a branch that is not a NeRF."""
+    from pipeline.bench.roombox_floor import true_box
+    from pipeline.data.lighting import probe_rays
+    from pipeline.models.light_net import trace_views
+    from pipeline.models.light_net.branches import OutOfViewBranch
+    from pipeline.ops.roombox import exit_face
+
+    net = system.net
+    if not isinstance(net.out_of_view, OutOfViewBranch):
+        return None
+    system.eval()
+    rel, near, opacity, left = [], [], [], []
+    for batch in plain:
+        fov = system.fov(batch)
+        gb = system.gbuffers(batch)
+        ctx = net.encode(batch["im"], gb["depth"], fov, normal=gb["normal"])
+        boxes = [true_box(source_root, v) for v in batch["id"]]
+        for kind in KINDS:
+            rays = probe_rays(batch["light"], kind, strata=1)
+            if rays is None:
+                continue
+            o, d, b = rays.origin, rays.direction[:, 0], rays.image
+            _, hit, _ = trace_views(gb, fov, o, d, b)
+            o, d, b = o[~hit], d[~hit], b[~hit]
+            if not len(b):
+                continue
+            out = net.out_of_view.query(
+                ctx["feature"],
+                ctx["params"],
+                ctx["unit"],
+                ctx.get("bounds"),
+                b,
+                o,
+                d,
+                depth_max=ctx.get("depth_max"),
+                details=True,
+            )
+            rot = torch.stack([boxes[i][0] for i in b.tolist()]).float()
+            lo = torch.stack([boxes[i][1] for i in b.tolist()]).float()
+            hi = torch.stack([boxes[i][2] for i in b.tolist()]).float()
+            q, dq = (o.unsqueeze(1) @ rot)[:, 0], (d.unsqueeze(1) @ rot)[:, 0]
+            _, _, t_wall = exit_face(q, dq, lo, hi)
+            w, t = out["weights"], out["t"]
+            mass = w.sum(1)
+            mean_t = (w * t).sum(1) / mass.clamp(min=1e-9)
+            ok = mass >= 0.05
+            rel.append(((mean_t - t_wall).abs() / t_wall.clamp(min=1e-3))[ok])
+            within = ((t - t_wall[:, None]).abs() <= 0.2 * t_wall[:, None]).to(w.dtype)
+            near.append((w * within).sum(1) / mass.clamp(min=1e-9))
+            opacity.append(mass)
+            left.append(out["left"])
+    system.train()
+    if not rel:
+        return None
+    rel, near, opacity, left = (torch.cat(x) for x in (rel, near, opacity, left))
+    return {
+        "miss_rays": int(len(opacity)),
+        "depth_relative_error_median": float(rel.median()) if len(rel) else None,
+        "weight_within_20pc_of_wall": float(near.mean()),
+        "opacity_mean": float(opacity.mean()),
+        "far_field_share_mean": float(left.mean()),
+    }
+
+
+def use_room_embedding(system, optimizer, plain) -> None:
+    """Suspect 5: the out-of-view branch's image feature replaced by a free vector per training room,
+    each started at its room's image feature and trained with the branch (a param group of the stage's
+    optimiser). Rooms are told apart by their images' sums (the bench's rooms are fixed)."""
+    branch = system.net.out_of_view
+    images = torch.cat([b["im"] for b in plain])
+    keys = [float(x.double().sum()) for x in images]
+    if len(set(keys)) != len(keys):
+        raise ValueError("+bench.room_embedding: two training rooms have the same image sum")
+    with torch.no_grad():
+        start, _ = branch.encode(images)
+    table = torch.nn.Parameter(start.clone())
+    branch.register_parameter("room_table", table)
+    optimizer.add_param_group({"params": [table]})
+
+    def encode(im, normalise=True):
+        index = torch.tensor([keys.index(float(x.double().sum())) for x in im])
+        feature = table[index]
+        return feature, branch.hyper(feature)
+
+    branch.encode = encode
+
+
 def plateaued(losses: list[float], window: int, min_gain: float) -> bool:
     """Whether the mean loss of the last `window` steps is less than `min_gain` (relative) below the mean
     of the `window` steps before (False until there are 2 windows; a negative min_gain never stops)."""
@@ -165,6 +267,11 @@ def train_to_plateau(
     return {"steps": step, "stopped_by": stop, "seconds": time.perf_counter() - t0, "loss": losses, "curve": curve}
 
 
+def source_root(data_dir) -> Path:
+    """Where the shards' views were rendered (their manifest's `source_root`: the room files)."""
+    return Path(json.loads((Path(data_dir) / "manifest.json").read_text())["source_root"])
+
+
 def run(
     rooms=(1, 8, 64),
     variants=(("default", []),),
@@ -196,6 +303,8 @@ def run(
                 system, optimizer, cfg = training_system("train_lighting", ["gbuffers=ground_truth", *overrides], seed)
                 loader, plain = rooms_batches(data_dir, n, int(cfg.batch_size))
                 score = evaluate
+                if OmegaConf.select(cfg, "bench.room_embedding"):
+                    use_room_embedding(system, optimizer, plain)
             else:
                 system, optimizer, cfg = training_system("train_material", overrides, seed)
                 loader, plain = rooms_batches(data_dir, n, int(cfg.batch_size), lighting=False)
@@ -205,6 +314,8 @@ def run(
             row = train_to_plateau(
                 system, optimizer, loader, plain, max_steps, eval_every, window, min_gain, label, score, clip
             )
+            if network == "light":
+                row["walls"] = wall_agreement(system, plain, source_root(data_dir))
             report["runs"].append({"variant": name, "overrides": overrides, "rooms": n, "clip": clip, **row})
     return report
 

@@ -495,6 +495,10 @@ def overfit_row(run: dict) -> dict:
             row[f"{kind} energy part"] = last[kind].get("energy_part")
     if "render_psnr" in last:
         row["re-render PSNR (dB)"] = last["render_psnr"]
+    walls = run.get("walls")
+    if isinstance(walls, dict):  # the NeRF's weight against the true walls, on miss rays
+        row["NeRF weight within 20 % of the wall"] = walls.get("weight_within_20pc_of_wall")
+        row["NeRF opacity"] = walls.get("opacity_mean")
     for metric in ("metallic_mse", "roughness_mse", "albedo_mse"):
         if isinstance(last.get(metric), dict):
             row[f"{metric} / mean"] = last[metric].get("ratio")

@@ -42,10 +42,24 @@ def test_overfit_bench_runs_small(micro_shards, tmp_path):
                 k = c[kind]
                 assert k["energy_part"] + k["placement_part"] == pytest.approx(k["nmse"])
                 assert sum(v["ray_fraction"] for v in k["classes"].values()) == pytest.approx(1.0)
+    walls = run["walls"]  # the NeRF's weight against the rooms' true walls, on miss rays
+    assert walls["miss_rays"] > 0
+    assert 0 <= walls["weight_within_20pc_of_wall"] <= 1 and 0 <= walls["opacity_mean"] <= 1
+    assert walls["opacity_mean"] + walls["far_field_share_mean"] == pytest.approx(1.0, abs=1e-4)
     with pytest.raises(ValueError, match="training split"):
         overfit.run(rooms=(10_000,), data_dir=str(micro_shards), max_steps=1)
     overfit.plot(report, tmp_path / "o.png")
     assert (tmp_path / "o.png").stat().st_size > 5_000
+
+
+def test_overfit_bench_room_embedding_and_roombox_variants(micro_shards):
+    variants = (("table", ["+bench.room_embedding=true"]), ("box", ["model.light_net.out_of_view.kind=roombox"]))
+    report = overfit.run(
+        rooms=(2,), variants=variants, data_dir=str(micro_shards), max_steps=2, eval_every=2, window=1, min_gain=-1
+    )
+    table, box = report["runs"]
+    assert table["walls"]["miss_rays"] > 0 and box["walls"] is None  # walls: the NeRF's only
+    assert all(math.isfinite(x) for x in table["loss"] + box["loss"])
 
 
 def test_train_step_bench_runs_small(micro_shards, micro_exports, tmp_path, monkeypatch):
@@ -141,3 +155,30 @@ def test_optimiser_step_clips_the_gradient_norm_as_the_stage_does():
     opt = torch.optim.SGD(model.net.parameters(), lr=1.0)
     optimiser_step(model, opt, torch.ones(2, 4), 0, clip=0.5)
     assert float((model.net.weight - before).norm()) == pytest.approx(0.5, rel=1e-5)  # SGD moves by the clipped norm
+
+
+def test_out_of_view_kinds_bench_runs_small(micro_root, micro_shards, micro_exports, tmp_path):
+    """Both branches on the micro rooms at a budget of their warm-up steps: each scored on the test split,
+    the second paired with the first (insertion by case, re-render by view), the figure drawn."""
+    from pipeline.bench import out_of_view_kinds
+
+    report = out_of_view_kinds.run(
+        kinds=("nerf", "roombox"),
+        minutes=0.0,
+        warmup=2,
+        seed=0,
+        data_dir=str(micro_shards),
+        resamples=50,
+        overrides=["profile=micro", f"material_path={micro_exports / 'material.pt'}"],
+        edit_overrides=["profile=micro", f"data_root={micro_root}", f"data_dir={micro_shards}"],
+    )
+    nerf, box = report["runs"]
+    assert (nerf["kind"], box["kind"]) == ("nerf", "roombox") and nerf["steps"] == box["steps"] == 2
+    assert "insertion/all/nearest_probe" in nerf and "insertion/all/nearest_probe" not in box
+    gap = box["insertion"]["all"]["psnr"] - nerf["insertion"]["all"]["psnr"]
+    assert box["insertion"]["all"]["minus_reference"] == pytest.approx(gap, abs=1e-9)
+    assert nerf["insertion"]["all"]["minus_reference"] == 0.0
+    assert "render_psnr" in box["views_minus_first"] and math.isfinite(box["test"]["render_psnr"])
+    assert [r["kind"] for r in report["summary"]["kinds"]] == ["nerf", "roombox"]
+    out_of_view_kinds.plot(report, tmp_path / "k.png")
+    assert (tmp_path / "k.png").stat().st_size > 10_000

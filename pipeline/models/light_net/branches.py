@@ -263,10 +263,14 @@ class OutOfViewBranch(nn.Module):
         feature = self.to_feature(self.encoder(x)[-1].mean(dim=(2, 3)))
         return feature, self.hyper(feature)
 
-    def query(self, feature, params, scale, bounds, batch_index, origin, wi, generator=None, depth_max=None):
+    def query(
+        self, feature, params, scale, bounds, batch_index, origin, wi, generator=None, depth_max=None, details=False
+    ):
         """Volume-render rays (N,) of images batch_index -> radiance (N, 3). bounds (B, 2, 3): box min, max
         in view space, metres (`box`); depth_max (B,): each view's largest z-depth, metres (`sphere`).
-        generator None: stratum midpoints (deterministic)."""
+        generator None: stratum midpoints (deterministic). details: return a dict instead, radiance (N, 3)
+        with each sample's compositing weight (N, S), its distance along the ray (N, S) in metres and the
+        transmittance left (N,) (where the volume puts its surfaces: bench.overfit's wall agreement)."""
         if self.bounds == "sphere":
             if depth_max is None:
                 raise ValueError("out_of_view.bounds=sphere: query needs depth_max")
@@ -291,17 +295,21 @@ class OutOfViewBranch(nn.Module):
             pts = origin[c, None, :] + mids[c, :, None] * wi[c, None, :]  # (n, S, 3)
             pts = (pts - centre[c, None]) / half[c, None]
             parts.append(self._march(params, pts, edges[c], batch_index[c], None if spacing is None else spacing[c]))
-        rad, left = parts[0] if len(parts) == 1 else (torch.cat(x) for x in zip(*parts, strict=True))
+        rad, left, weights = parts[0] if len(parts) == 1 else (torch.cat(x) for x in zip(*parts, strict=True))
         if self.far is not None:
             raw = self.far(torch.cat([feature[batch_index], fourier(wi, self.dir_frequencies)], -1))
             far = _activate(raw, "exp") if self.activation == "exp" else F.softplus(raw)
             rad = rad + left[:, None] * far
-        return rad * scale[batch_index].unsqueeze(-1)
+        rad = rad * scale[batch_index].unsqueeze(-1)
+        if details:
+            metres = mids * (unit if self.bounds == "sphere" else 1.0)
+            return {"radiance": rad, "weights": weights, "t": metres, "left": left}
+        return rad
 
     def _march(self, params, pts, edges, batch_index, density_scale):
         """Volume-render one chunk of rays: sample points pts (n, S, 3) (encoded positions' space), segment
         edges (n, S+1), images batch_index (n,), density_scale (n,) or None -> (radiance (n, 3), transmittance
-        left (n,))."""
+        left (n,), compositing weights (n, S))."""
         S = pts.shape[1]
         encoded = fourier(pts.reshape(-1, 3), self.frequencies, pi=self.pi_encoding)
         out = HyperMLP.run_generated(params, encoded, batch_index.repeat_interleave(S))
@@ -309,5 +317,5 @@ class OutOfViewBranch(nn.Module):
         # density and radiance share the activation, but for exp, which is for radiance only
         sigma = _activate(out[..., 0], "softplus" if self.activation == "exp" else self.activation)
         sigma = sigma if density_scale is None else sigma * density_scale[:, None]
-        rad, _, left = composite(sigma, _activate(out[..., 1:], self.activation), edges)
-        return rad, left
+        rad, weights, left = composite(sigma, _activate(out[..., 1:], self.activation), edges)
+        return rad, left, weights
