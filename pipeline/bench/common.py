@@ -92,6 +92,18 @@ def optimiser_step(system, optimizer, batch, step: int, clip: float) -> float:
     return float(loss.detach())
 
 
+_STARTED_AT: tuple[str | None, bool | None] | None = None  # the code a bench process started on
+
+
+def started_commit() -> tuple[str | None, bool | None]:
+    """`git_commit()` as it was when this process first asked (a bench asks on importing this module), so
+    a long run's JSON names the code it ran, not a commit made while it ran."""
+    global _STARTED_AT
+    if _STARTED_AT is None:
+        _STARTED_AT = git_commit()
+    return _STARTED_AT
+
+
 def git_commit() -> tuple[str | None, bool | None]:
     """(HEAD's SHA, whether tracked files differ from it), or (None, None) outside a git checkout."""
     root = project_root()
@@ -111,8 +123,9 @@ def _main_module() -> str:
 
 def provenance() -> dict:
     """What a bench JSON says about its own run: commit, dirty tree, command, UTC date, the stage configs
-    composed (`compose`) and their profile (None when it composed none: a bench of its own settings)."""
-    commit, dirty = git_commit()
+    composed (`compose`) and their profile (None when it composed none: a bench of its own settings).
+    The commit and dirty flag are the ones the process started on (`started_commit`)."""
+    commit, dirty = started_commit()
     profiles = sorted({c["profile"] for c in COMPOSED if c["profile"] is not None})
     return {
         "commit": commit,
@@ -203,3 +216,6 @@ def edit_object_cases(view_id: str, cases: list) -> list:
     if cases[: len(objects)] != objects:
         raise ValueError(f"{view_id}: edits listed before objects; the seeds would differ from `edit`'s")
     return objects
+
+
+started_commit()  # on import: what the bench starts on

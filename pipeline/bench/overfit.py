@@ -21,7 +21,9 @@ where the volume puts its compositing weight against the true distance to the ro
 file): the weight-averaged distance's relative error, the share of the weight within 20 % of the wall,
 the volume's opacity and the far field's share. A variant with the override `+bench.room_embedding=true`
 replaces the branch's image feature by a free vector per room (started at the room's image feature):
-whether the image encoder is what keeps the NeRF from memorising.
+whether the image encoder is what keeps the NeRF from memorising; `+bench.room_textures=true` does the
+same for the room-box branch's decoded textures (a free texture table per room), and
+`+bench.true_layout=true` gives the room-box branch each room's true box.
 Writes reports/bench/overfit.json (or `--name`) and a PNG of those curves against steps.
 """
 
@@ -229,6 +231,60 @@ def use_room_embedding(system, optimizer, plain) -> None:
     branch.encode = encode
 
 
+def use_true_layout(system, plain, data_dir) -> None:
+    """The room-box branch given each training room's true box (from its room file, `layout: gt`) instead
+    of the one it estimates from the depth and normals: whether the box estimate limits memorising."""
+    from pipeline.bench.roombox_floor import true_box
+
+    branch = system.net.out_of_view
+    ids = [v for b in plain for v in b["id"]]
+    keys = [float(x.double().sum()) for b in plain for x in b["im"]]
+    boxes = [true_box(source_root(data_dir), v) for v in ids]
+    encode = branch.encode
+
+    def with_box(im, unit, depth, fov_x, normal=None, normalise=True, box=None):
+        index = [keys.index(float(x.double().sum())) for x in im]
+        box = tuple(torch.stack([boxes[i][k] for i in index]).to(im.dtype) for k in range(3))
+        return encode(im, unit, depth, fov_x, normal, normalise, box)
+
+    branch.encode = with_box
+
+
+TABLE_LR = 0.05  # the free texture table's learning rate (bench.roombox_floor's)
+
+
+def use_room_textures(system, optimizer, plain) -> None:
+    """The room-box branch's face textures replaced by a free table per training room (log radiance and
+    opacity logit per texel, started at the room's textures), trained with the stage's optimiser (the
+    table at `TABLE_LR`) and loss: whether the texture decoder or the supervision limits memorising."""
+    branch = system.net.out_of_view
+    images = torch.cat([b["im"] for b in plain])
+    keys = [float(x.double().sum()) for x in images]
+    if len(set(keys)) != len(keys):
+        raise ValueError("+bench.room_textures: two training rooms have the same image sum")
+    encode = branch.encode
+    with torch.no_grad():
+        rooms = []
+        for b in plain:
+            gb = system.gbuffers(b)
+            rooms.append(system.net.encode(b["im"], gb["depth"], system.fov(b), normal=gb["normal"])["room"])
+        tex = torch.cat([r["textures"] for r in rooms])
+        start = torch.cat([tex[:, :, :3].clamp(min=1e-6).log(), torch.logit(tex[:, :, 3:].clamp(1e-4, 1 - 1e-4))], 2)
+    table = torch.nn.Parameter(start)
+    branch.register_parameter("room_table", table)
+    # log radiance moves by several units from one image mean to a lamp: at the stage's 1e-3 a free
+    # table would need thousands of steps, so it gets the rate the floor test fits textures with
+    optimizer.add_param_group({"params": [table], "lr": TABLE_LR})
+
+    def free(im, unit, *args, **kwargs):
+        room = encode(im, unit, *args, **kwargs)
+        index = torch.tensor([keys.index(float(x.double().sum())) for x in im])
+        t = table[index]
+        return {**room, "textures": torch.cat([torch.exp(t[:, :, :3].clamp(max=12.0)), torch.sigmoid(t[:, :, 3:])], 2)}
+
+    branch.encode = free
+
+
 def plateaued(losses: list[float], window: int, min_gain: float) -> bool:
     """Whether the mean loss of the last `window` steps is less than `min_gain` (relative) below the mean
     of the `window` steps before (False until there are 2 windows; a negative min_gain never stops)."""
@@ -305,6 +361,10 @@ def run(
                 score = evaluate
                 if OmegaConf.select(cfg, "bench.room_embedding"):
                     use_room_embedding(system, optimizer, plain)
+                if OmegaConf.select(cfg, "bench.true_layout"):
+                    use_true_layout(system, plain, data_dir)
+                if OmegaConf.select(cfg, "bench.room_textures"):
+                    use_room_textures(system, optimizer, plain)
             else:
                 system, optimizer, cfg = training_system("train_material", overrides, seed)
                 loader, plain = rooms_batches(data_dir, n, int(cfg.batch_size), lighting=False)

@@ -80,6 +80,7 @@ def extents_from_points(
     seen_share: float = 0.01,
     margin: float = 0.3,
     min_cos: float = 0.9,
+    return_seen: bool = False,
 ):
     """Box faces lo, hi (B, 3) in box coordinates from view-space points (B, H, W, 3) and normals
     (B, 3, H, W) at valid pixels (B, H, W).
@@ -90,18 +91,21 @@ def extents_from_points(
     wall behind the camera, always; a side wall outside the field of view) is put at `unseen_fraction`
     (per axis x, y, z) of the opposite face's distance from the camera, never nearer than the furthest
     point towards it nor than `margin` metres (the camera is inside the room). The default fractions are
-    the generator's rooms' medians (`bench.roombox_floor`): side walls 0.6, ceiling 1.0, behind 0.25."""
+    the generator's rooms' medians (`bench.roombox_floor`): side walls 0.6, ceiling 1.0, behind 0.25.
+    return_seen: also return which faces were seen, (B, 3) booleans for lo and for hi."""
     B = points.shape[0]
     q = points.reshape(B, -1, 3) @ rotation  # (B, P, 3)
     n = normal.permute(0, 2, 3, 1).reshape(B, -1, 3).to(q.dtype) @ rotation
     v = valid.reshape(B, -1) & torch.isfinite(q).all(-1) & torch.isfinite(n).all(-1)
     frac = torch.as_tensor(unseen_fraction, dtype=q.dtype, device=q.device).expand(3)
-    lo, hi = [], []
+    lo, hi, seen_lo, seen_hi = [], [], [], []
     for b in range(B):
         qb, nb = q[b][v[b]], n[b][v[b]]
         if len(qb) < 8:
             lo.append(torch.full((3,), -3.0, dtype=q.dtype, device=q.device))
             hi.append(torch.full((3,), 3.0, dtype=q.dtype, device=q.device))
+            seen_lo.append(torch.zeros(3, dtype=torch.bool, device=q.device))
+            seen_hi.append(torch.zeros(3, dtype=torch.bool, device=q.device))
             continue
         lo_b = torch.quantile(qb, 1 - quantile, dim=0).clamp(max=-margin)
         hi_b = torch.quantile(qb, quantile, dim=0).clamp(min=margin)
@@ -110,8 +114,12 @@ def extents_from_points(
         share_hi = (((qb - hi_b).abs() < 0.25) & (nb <= -min_cos)).to(q.dtype).mean(0)
         far_lo = torch.minimum(lo_b, -frac * hi_b)
         far_hi = torch.maximum(hi_b, -frac * lo_b)
-        lo.append(torch.where(share_lo >= seen_share, lo_b, far_lo))
-        hi.append(torch.where(share_hi >= seen_share, hi_b, far_hi))
+        seen_lo.append(share_lo >= seen_share)
+        seen_hi.append(share_hi >= seen_share)
+        lo.append(torch.where(seen_lo[-1], lo_b, far_lo))
+        hi.append(torch.where(seen_hi[-1], hi_b, far_hi))
+    if return_seen:
+        return torch.stack(lo), torch.stack(hi), torch.stack(seen_lo), torch.stack(seen_hi)
     return torch.stack(lo), torch.stack(hi)
 
 

@@ -43,3 +43,12 @@ def test_the_page_marks_benches_not_measured_on_the_current_profile():
     assert "commit aaaaaaaaaa" in same and "Not" not in same
     own = provenance_line({"provenance": {**record, "profile": None}}, "tiny")
     assert "Its own settings" in own
+
+
+def test_provenance_names_the_commit_the_process_started_on(monkeypatch):
+    # a commit made while a long bench runs must not be credited with its numbers
+    from pipeline.bench import common
+
+    before = common.provenance()["commit"]
+    monkeypatch.setattr(common, "git_commit", lambda: ("f" * 40, False))
+    assert common.provenance()["commit"] == before

@@ -53,7 +53,8 @@ def test_overfit_bench_runs_small(micro_shards, tmp_path):
 
 
 def test_overfit_bench_room_embedding_and_roombox_variants(micro_shards):
-    variants = (("table", ["+bench.room_embedding=true"]), ("box", ["model.light_net.out_of_view.kind=roombox"]))
+    box = ["model.light_net.out_of_view.kind=roombox", "+bench.true_layout=true", "+bench.room_textures=true"]
+    variants = (("table", ["+bench.room_embedding=true"]), ("box", box))
     report = overfit.run(
         rooms=(2,), variants=variants, data_dir=str(micro_shards), max_steps=2, eval_every=2, window=1, min_gain=-1
     )

@@ -62,6 +62,27 @@ def test_predicted_layout_finds_the_bare_rooms_box():
     torch.testing.assert_close(room["hi"][0, :2], BARE[1, :2], atol=0.05, rtol=0)
 
 
+def test_learnt_unseen_faces_move_only_the_unseen_faces_and_learn_from_the_light():
+    # the bare room seen by a level camera: the face behind it is unseen; a scale of e^0.5 on it moves
+    # it alone, and a loss on rays that leave through it reaches the scale's head
+    image, depth, normal, _ = glowing_room(96, 128, 100.0)
+    branch = RoomBoxBranch(texture_size=8, channels=8, code_dim=16, unseen="learnt")
+    unit = image.mean().view(1)
+    prior = branch.encode(image, unit, depth, 100.0, normal)
+    with torch.no_grad():
+        branch.unseen_scale.bias[5] = 0.5  # face 5: the hi side of z, behind the camera
+    room = branch.encode(image, unit, depth, 100.0, normal)
+    torch.testing.assert_close(room["lo"], prior["lo"])
+    torch.testing.assert_close(room["hi"][0, :2], prior["hi"][0, :2])
+    assert room["hi"][0, 2].item() == pytest.approx(prior["hi"][0, 2].item() * float(torch.exp(torch.tensor(0.5))))
+    wi = F.normalize(torch.tensor([[0.3, 0.2, 1.0], [-0.2, -0.1, 1.0]]), dim=-1)
+    out = branch.query(room, unit, torch.zeros(2, dtype=torch.long), torch.zeros(2, 3), wi)
+    out.sum().backward()
+    assert branch.unseen_scale.bias.grad[5].abs() > 0
+    with pytest.raises(ValueError, match="roombox.unseen='guess'"):
+        RoomBoxBranch(unseen="guess")
+
+
 def test_normals_from_depth_match_the_analytic_ones_inside_faces():
     image, depth, normal, _ = glowing_room()
     est = normals_from_depth(backproject(depth, 90.0))

@@ -31,6 +31,9 @@ from pipeline.ops.encodings import fourier, fourier_dim
 from pipeline.ops.roombox import exit_face, extents_from_points, observed_textures, rotation_from_normals, texel_lookup
 
 LAYOUTS = ("predicted", "gt")
+# where the faces the camera did not see go: at the prior's fraction of the opposite face (`prior`), or
+# there times exp(a per-face scale the code predicts), learnt through the light losses (`learnt`)
+UNSEEN = ("prior", "learnt")
 EXP_MAX = 12.0  # as the NeRF branch's exp activation: at most e^12 image means
 SEED_SIZE = 4  # side of the per-face map the code is reshaped to before upsampling
 
@@ -98,8 +101,11 @@ class RoomBoxBranch(nn.Module):
         coverage_pixels: float = 1.0,
         far_field: bool = True,
         dir_frequencies: int = 4,
+        unseen: str = "prior",
     ):
         super().__init__()
+        if unseen not in UNSEEN:
+            raise ValueError(f"model.light_net.out_of_view.roombox.unseen={unseen!r}: choose one of {UNSEEN}")
         if layout not in LAYOUTS:
             raise ValueError(f"model.light_net.out_of_view.roombox.layout={layout!r}: choose one of {LAYOUTS}")
         if int(texture_size) < SEED_SIZE or int(texture_size) % SEED_SIZE:
@@ -127,6 +133,11 @@ class RoomBoxBranch(nn.Module):
         with torch.no_grad():  # start opaque (sigmoid(3) = 0.95) at one image mean
             self.refine[-1].bias.copy_(torch.tensor([0.0, 0.0, 0.0, 3.0]))
         self.far = mlp_stack(int(code_dim) + fourier_dim(3, self.dir_frequencies), [64, 64], 3) if far_field else None
+        self.unseen_scale = None
+        if unseen == "learnt":  # log-scales of the six faces' distances, zero at the start (the prior)
+            self.unseen_scale = nn.Linear(int(code_dim), 6)
+            nn.init.zeros_(self.unseen_scale.weight)
+            nn.init.zeros_(self.unseen_scale.bias)
 
     def encode(self, im, unit, depth, fov_x, normal=None, normalise: bool = True, box=None) -> dict:
         """Per-image room: im (B, 3, H, W) HDR; unit (B,) what radiance is divided by; depth (B, H, W)
@@ -147,12 +158,19 @@ class RoomBoxBranch(nn.Module):
                 points = backproject_views(torch.where(valid, depth, torch.zeros_like(depth)), fov_x)
                 n = normals_from_depth(points) if normal is None else normal.detach()
                 rotation = rotation_from_normals(n, valid)
-                lo, hi = extents_from_points(points, valid, rotation, n, unseen_fraction=self.unseen_fraction)
+                lo, hi, seen_lo, seen_hi = extents_from_points(
+                    points, valid, rotation, n, unseen_fraction=self.unseen_fraction, return_seen=True
+                )
             seen = im.detach().clamp(min=0) / unit.view(-1, 1, 1, 1)
             obs, count = observed_textures(
                 seen, depth, fov_x, rotation, lo, hi, self.texture_size, normal, self.plane_tolerance
             )
             coverage = 1 - torch.exp(-count / self.coverage_pixels)
+        if self.unseen_scale is not None and self.layout == "predicted" and box is None:
+            # faces by index 2 * axis + side: the scale moves only the faces that were not seen
+            scale = torch.exp(self.unseen_scale(code).clamp(-2.0, 2.0)).view(-1, 3, 2)
+            lo = torch.where(seen_lo, lo, lo * scale[..., 0])
+            hi = torch.where(seen_hi, hi, hi * scale[..., 1])
         B, T, c = im.shape[0], self.texture_size, self.channels
         seed = self.seed(code).view(B * 6, c, SEED_SIZE, SEED_SIZE)
         seed = F.interpolate(seed, size=(T, T), mode="bilinear", align_corners=False)
