@@ -338,7 +338,10 @@ def run(
     min_gain=0.02,
     seed=0,
     network: str = "light",
+    on_run=None,
 ) -> dict:
+    """Every variant on every room count (module docstring); on_run(report) after each run (the JSON
+    written so far, so a long bench that stops keeps the runs it finished)."""
     if network not in NETWORKS:
         raise ValueError(f"--network {network!r}: choose one of {NETWORKS}")
     report = {
@@ -377,6 +380,8 @@ def run(
             if network == "light":
                 row["walls"] = wall_agreement(system, plain, source_root(data_dir))
             report["runs"].append({"variant": name, "overrides": overrides, "rooms": n, "clip": clip, **row})
+            if on_run is not None:
+                on_run(report)
     return report
 
 
@@ -464,7 +469,18 @@ def main(argv=None) -> None:
     a = p.parse_args(argv)
     apply_threads(a.threads)
     variants = [parse_variant(v) for v in (a.variant or ["default"])]
-    report = run(a.rooms, variants, a.data_dir, a.max_steps, a.eval_every, a.window, a.min_gain, a.seed, a.network)
+    report = run(
+        a.rooms,
+        variants,
+        a.data_dir,
+        a.max_steps,
+        a.eval_every,
+        a.window,
+        a.min_gain,
+        a.seed,
+        a.network,
+        on_run=lambda partial: publish(a.name, partial, plot),
+    )
     print(publish(a.name, report, plot))
 
 

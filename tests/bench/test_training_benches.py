@@ -55,9 +55,18 @@ def test_overfit_bench_runs_small(micro_shards, tmp_path):
 def test_overfit_bench_room_embedding_and_roombox_variants(micro_shards):
     box = ["model.light_net.out_of_view.kind=roombox", "+bench.true_layout=true", "+bench.room_textures=true"]
     variants = (("table", ["+bench.room_embedding=true"]), ("box", box))
+    written = []  # what a long bench has published after each run (it keeps the runs it finished)
     report = overfit.run(
-        rooms=(2,), variants=variants, data_dir=str(micro_shards), max_steps=2, eval_every=2, window=1, min_gain=-1
+        rooms=(2,),
+        variants=variants,
+        data_dir=str(micro_shards),
+        max_steps=2,
+        eval_every=2,
+        window=1,
+        min_gain=-1,
+        on_run=lambda partial: written.append([r["variant"] for r in partial["runs"]]),
     )
+    assert written == [["table"], ["table", "box"]]
     table, box = report["runs"]
     assert table["walls"]["miss_rays"] > 0 and box["walls"] is None  # walls: the NeRF's only
     assert all(math.isfinite(x) for x in table["loss"] + box["loss"])

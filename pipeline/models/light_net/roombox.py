@@ -157,13 +157,14 @@ class RoomBoxBranch(nn.Module):
             else:
                 points = backproject_views(torch.where(valid, depth, torch.zeros_like(depth)), fov_x)
                 n = normals_from_depth(points) if normal is None else normal.detach()
+                normal = n  # the observation's inward-facing test uses the same normals
                 rotation = rotation_from_normals(n, valid)
                 lo, hi, seen_lo, seen_hi = extents_from_points(
                     points, valid, rotation, n, unseen_fraction=self.unseen_fraction, return_seen=True
                 )
-            seen = im.detach().clamp(min=0) / unit.view(-1, 1, 1, 1)
+            photo = im.detach().clamp(min=0) / unit.view(-1, 1, 1, 1)
             obs, count = observed_textures(
-                seen, depth, fov_x, rotation, lo, hi, self.texture_size, normal, self.plane_tolerance
+                photo, depth, fov_x, rotation, lo, hi, self.texture_size, normal, self.plane_tolerance
             )
             coverage = 1 - torch.exp(-count / self.coverage_pixels)
         if self.unseen_scale is not None and self.layout == "predicted" and box is None:
