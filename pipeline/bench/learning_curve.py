@@ -45,6 +45,18 @@ REFERENCE_ROWS = ("lightnet", "scaled_constant", "nearest_probe")
 TEST_METRICS = ("render_psnr", "surf_light_nmse", "free_light_nmse")
 
 
+def add_held_out_options(parser, name: str) -> None:
+    """The options of a bench that trains LightNet and scores it held out: data, stage and edit overrides,
+    bootstrap resamples, seed, the JSON's name and the torch threads."""
+    parser.add_argument("--data-dir", default="outputs/preprocess")
+    parser.add_argument("--override", action="append", default=[], help="a train_lighting override (repeatable)")
+    parser.add_argument("--edit-override", action="append", default=[], help="an edit override (repeatable)")
+    parser.add_argument("--resamples", type=int, default=2000)
+    parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--name", default=name, help="the JSON/PNG name under reports/bench")
+    add_threads_option(parser)
+
+
 def first_rooms_loader(data_dir: str, rooms: int, batch_size: int, seed: int):
     """A shuffling loader (seeded) over the first `rooms` views of the training split, the last partial
     batch dropped as the stage drops it. Raises naming the split when it holds fewer views."""
@@ -232,13 +244,7 @@ def main(argv=None) -> None:
     p.add_argument("--rooms", type=int, nargs="+", default=[63, 126, 252])
     p.add_argument("--steps", type=int, default=1260, help="every room count's budget (tiny: 20 epochs x 63)")
     p.add_argument("--budgets", type=int, nargs="*", default=[315, 630], help="steps on all rooms, beside --steps")
-    p.add_argument("--data-dir", default="outputs/preprocess")
-    p.add_argument("--override", action="append", default=[], help="a train_lighting override (repeatable)")
-    p.add_argument("--edit-override", action="append", default=[], help="an edit override (repeatable)")
-    p.add_argument("--resamples", type=int, default=2000)
-    p.add_argument("--seed", type=int, default=0)
-    p.add_argument("--name", default="learning_curve", help="the JSON/PNG name under reports/bench")
-    add_threads_option(p)
+    add_held_out_options(p, "learning_curve")
     a = p.parse_args(argv)
     apply_threads(a.threads)
     report = run(a.rooms, a.steps, a.budgets, a.seed, a.data_dir, a.resamples, a.override, a.edit_override)

@@ -31,14 +31,20 @@ from matplotlib.figure import Figure
 from tqdm import tqdm
 
 from pipeline.bench.common import (
-    add_threads_option,
     apply_threads,
     gradient_clip,
     optimiser_step,
     publish,
     training_system,
 )
-from pipeline.bench.learning_curve import CLASSES, REFERENCE_ROWS, compare, first_rooms_loader, score
+from pipeline.bench.learning_curve import (
+    CLASSES,
+    REFERENCE_ROWS,
+    add_held_out_options,
+    compare,
+    first_rooms_loader,
+    score,
+)
 from pipeline.metrics.bootstrap import paired_bootstrap
 
 VIEW_METRICS = ("render_psnr", "surf_light_nmse", "free_light_nmse")
@@ -187,13 +193,7 @@ def main(argv=None) -> None:
     p.add_argument("--kinds", nargs="+", default=["nerf", "roombox"])
     p.add_argument("--minutes", type=float, default=10.0, help="training wall-clock budget per kind")
     p.add_argument("--warmup", type=int, default=20, help="steps that time a step (inside the budget)")
-    p.add_argument("--data-dir", default="outputs/preprocess")
-    p.add_argument("--override", action="append", default=[], help="a train_lighting override (repeatable)")
-    p.add_argument("--edit-override", action="append", default=[], help="an edit override (repeatable)")
-    p.add_argument("--resamples", type=int, default=2000)
-    p.add_argument("--seed", type=int, default=0)
-    p.add_argument("--name", default="out_of_view_kinds")
-    add_threads_option(p)
+    add_held_out_options(p, "out_of_view_kinds")
     a = p.parse_args(argv)
     apply_threads(a.threads)
     report = run(a.kinds, a.minutes, a.warmup, a.seed, a.data_dir, a.resamples, a.override, a.edit_override)

@@ -371,7 +371,7 @@ def _out_of_view(net, im, origin, wi, t_far, case):
     z = 0.05 + (t_far[:, None] - 0.05) * (torch.arange(n) + 0.5) / n
     edges = torch.cat([z, t_far[:, None]], 1)
     pts = origin[:, None] + z[..., None] * wi[:, None]
-    rad, _ = net.out_of_view._march(params, pts, edges, torch.zeros(len(wi), dtype=torch.long), None)
+    rad, _, _ = net.out_of_view._march(params, pts, edges, torch.zeros(len(wi), dtype=torch.long), None)
     return rad, params
 
 

@@ -5,10 +5,11 @@ import pytest
 import torch
 from torch.nn import functional as F
 
-from pipeline.bench.scenes import BoxRoom, ssrt_rays
+from pipeline.bench.scenes import BoxRoom
 from pipeline.models.light_net import LightNet, out_of_view_branch
 from pipeline.models.light_net.roombox import RoomBoxBranch, box_radiance, normals_from_depth
 from pipeline.ops.camera import backproject
+from tests.models.test_light_net import _scene
 
 BARE = torch.tensor([[-2.0, -1.4, -5.5], [2.0, 1.4, 0.5]])
 ROOMBOX = {"kind": "roombox", "roombox": {"texture_size": 8, "channels": 8, "code_dim": 16}}
@@ -103,30 +104,6 @@ def test_box_radiance_gradcheck_in_textures():
     b = torch.randint(0, 2, (9,), generator=g)
     far = torch.rand(9, 3, dtype=torch.float64, generator=g)
     assert torch.autograd.gradcheck(lambda t: box_radiance({**room, "textures": t}, b, o, wi, far), (tex,))
-
-
-def _scene(B=2, H=24, W=32, fov=85.0):
-    room = BoxRoom.default(torch.float32)
-    depth, normal = room.render(H, W, fov)
-    depth, normal = depth.float().repeat(B, 1, 1), normal.float().repeat(B, 1, 1, 1)
-    g = torch.Generator().manual_seed(0)
-    gb = {
-        "depth": depth,
-        "normal": normal,
-        "albedo": torch.rand(B, 3, H, W, generator=g),
-        "material": torch.rand(B, 2, H, W, generator=g),
-    }
-    o, wi = ssrt_rays(depth[:1], normal[:1], fov, 2, g)
-    n = len(o)
-    bidx = torch.cat([torch.zeros(n), torch.ones(n)]).long()
-    return (
-        torch.rand(B, 3, H, W, generator=g) * 4,
-        gb,
-        fov,
-        torch.cat([o, o]).float(),
-        torch.cat([wi, wi]).float(),
-        bidx,
-    )
 
 
 @pytest.mark.parametrize("mode", ("mixed", "out_of_view_only"))
