@@ -24,8 +24,9 @@ import torch
 from torch import nn
 from torch.nn import functional as F
 
+from pipeline.models.light_net.branches import EXP_MAX, _encoder
 from pipeline.models.light_net.hyper import mlp_stack
-from pipeline.models.material_net import ENCODERS, normalize_input
+from pipeline.models.material_net import normalize_input
 from pipeline.ops.camera import backproject_views
 from pipeline.ops.encodings import fourier, fourier_dim
 from pipeline.ops.roombox import exit_face, extents_from_points, observed_textures, rotation_from_normals, texel_lookup
@@ -34,7 +35,6 @@ LAYOUTS = ("predicted", "gt")
 # where the faces the camera did not see go: at the prior's fraction of the opposite face (`prior`), or
 # there times exp(a per-face scale the code predicts), learnt through the light losses (`learnt`)
 UNSEEN = ("prior", "learnt")
-EXP_MAX = 12.0  # as the NeRF branch's exp activation: at most e^12 image means
 SEED_SIZE = 4  # side of the per-face map the code is reshaped to before upsampling
 
 
@@ -114,7 +114,7 @@ class RoomBoxBranch(nn.Module):
             )
         if not coverage_pixels > 0:
             raise ValueError(f"model.light_net.out_of_view.roombox.coverage_pixels={coverage_pixels}: must be > 0")
-        self.encoder = ENCODERS[backbone](norm="group") if backbone == "small" else ENCODERS[backbone]()
+        self.encoder = _encoder(backbone)
         self.grid = (int(grid[0]), int(grid[1]))
         width = self.encoder.channels[-1] * self.grid[0] * self.grid[1]
         self.to_code = nn.Sequential(nn.Linear(width, int(code_dim)), nn.ReLU())
