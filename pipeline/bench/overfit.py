@@ -138,6 +138,16 @@ def evaluate(system, plain) -> dict:
     return out
 
 
+def image_keys(images) -> list[float]:
+    """One key per image (N, 3, H, W): its sum, which tells the bench's fixed training rooms apart."""
+    return [float(x.double().sum()) for x in images]
+
+
+def room_index(keys: list[float], images) -> list[int]:
+    """The positions in `keys` of images (B, 3, H, W) (`image_keys`)."""
+    return [keys.index(k) for k in image_keys(images)]
+
+
 @torch.no_grad()
 def wall_agreement(system, plain, source_root: Path) -> dict | None:
     """Where the NeRF branch's volume puts its weight on the miss rays of the rooms' probe texels (one
@@ -214,7 +224,7 @@ def use_room_embedding(system, optimizer, plain) -> None:
     optimiser). Rooms are told apart by their images' sums (the bench's rooms are fixed)."""
     branch = system.net.out_of_view
     images = torch.cat([b["im"] for b in plain])
-    keys = [float(x.double().sum()) for x in images]
+    keys = image_keys(images)
     if len(set(keys)) != len(keys):
         raise ValueError("+bench.room_embedding: two training rooms have the same image sum")
     with torch.no_grad():
@@ -224,7 +234,7 @@ def use_room_embedding(system, optimizer, plain) -> None:
     optimizer.add_param_group({"params": [table]})
 
     def encode(im, normalise=True):
-        index = torch.tensor([keys.index(float(x.double().sum())) for x in im])
+        index = torch.tensor(room_index(keys, im))
         feature = table[index]
         return feature, branch.hyper(feature)
 
@@ -238,12 +248,12 @@ def use_true_layout(system, plain, data_dir) -> None:
 
     branch = system.net.out_of_view
     ids = [v for b in plain for v in b["id"]]
-    keys = [float(x.double().sum()) for b in plain for x in b["im"]]
+    keys = image_keys(torch.cat([b["im"] for b in plain]))
     boxes = [true_box(source_root(data_dir), v) for v in ids]
     encode = branch.encode
 
     def with_box(im, unit, depth, fov_x, normal=None, normalise=True, box=None):
-        index = [keys.index(float(x.double().sum())) for x in im]
+        index = room_index(keys, im)
         box = tuple(torch.stack([boxes[i][k] for i in index]).to(im.dtype) for k in range(3))
         return encode(im, unit, depth, fov_x, normal, normalise, box)
 
@@ -259,7 +269,7 @@ def use_room_textures(system, optimizer, plain) -> None:
     table at `TABLE_LR`) and loss: whether the texture decoder or the supervision limits memorising."""
     branch = system.net.out_of_view
     images = torch.cat([b["im"] for b in plain])
-    keys = [float(x.double().sum()) for x in images]
+    keys = image_keys(images)
     if len(set(keys)) != len(keys):
         raise ValueError("+bench.room_textures: two training rooms have the same image sum")
     encode = branch.encode
@@ -278,7 +288,7 @@ def use_room_textures(system, optimizer, plain) -> None:
 
     def free(im, unit, *args, **kwargs):
         room = encode(im, unit, *args, **kwargs)
-        index = torch.tensor([keys.index(float(x.double().sum())) for x in im])
+        index = torch.tensor(room_index(keys, im))
         t = table[index]
         return {**room, "textures": torch.cat([torch.exp(t[:, :, :3].clamp(max=12.0)), torch.sigmoid(t[:, :, 3:])], 2)}
 
