@@ -4,7 +4,7 @@ Per training step, for a batch of views: G-buffers (the frozen MaterialNet's pre
 metres through the exported depth scale, or the ground truth), random probes and texels of the lighting
 ground truth (`light_losses.LIGHT_LOSSES`, chosen by `lighting.light_loss`), and K random valid pixels
 re-rendered through the render layer with LightNet as the incident-radiance callback (L2 against the
-input, in units of the image mean).
+input, in units of the image mean; `RENDER_LOSSES` for the two estimators of that L2).
 Validation and test score every probe texel and a stride grid of pixels at the evaluation spp, with a
 generator seeded from `render.seed`; the test step also scores the content-blind baselines
 (`lighting_baselines`) on the same views and directions.
@@ -34,6 +34,14 @@ MATERIAL_MAPS = ("albedo", "normal", "material", "depth")  # what LightNet reads
 # out, as the ground truth has no material there); every_pixel: MaterialNet's depth on every pixel, so a
 # ray towards a visible lamp or window hits it in screen space, and the local branch reads its radiance
 SSRT_DEPTHS = ("valid", "every_pixel")
+# lighting.render_loss: how the re-render L2 is estimated from a Monte Carlo render r of a pixel with target t.
+# squared: (r - t)^2, whose expectation is (E[r] - t)^2 + Var[r]: the estimator's variance is part of the
+# loss, and a sharp light (a lamp, a window, a room's edges seen by a glossy lobe) has more variance than a
+# blurred one of the same mean, so the loss pulls the light towards a blur. decorrelated: two independent
+# estimates r1, r2 with half the samples each, (r1 - t)(r2 - t), whose expectation is (E[r] - t)^2 alone
+# (and its gradient that of the squared bias): the same samples, no pull towards blur; a step's value can be
+# negative. docs/method.md, 'The re-render loss'.
+RENDER_LOSSES = ("squared", "decorrelated")
 
 
 class LightingSystem(L.LightningModule):
@@ -63,6 +71,7 @@ class LightingSystem(L.LightningModule):
         seed: int = 0,
         cache_gbuffers: bool = True,
         ssrt_depth: str = "valid",
+        render_loss: str = "squared",
     ):
         super().__init__()
         if gbuffers not in ("predicted", "ground_truth"):
@@ -76,7 +85,15 @@ class LightingSystem(L.LightningModule):
             self.material = MaterialNet(**material["model"]).eval().requires_grad_(False)
             self.material.load_state_dict(material["state_dict"])
             self.depth_scale = float(material["depth_scale"])
-        self.train_layer = MCRenderLayer.from_config(render, "spp")
+        if render_loss not in RENDER_LOSSES:
+            raise ValueError(f"lighting.render_loss={render_loss!r}: choose one of {RENDER_LOSSES}")
+        self.render_loss = render_loss
+        train_render = dict(render)
+        if render_loss == "decorrelated":  # two estimates of half the samples each: the step's cost unchanged
+            if int(render["spp"]) < 2:
+                raise ValueError(f"render.spp={render['spp']}: lighting.render_loss=decorrelated needs at least 2")
+            train_render["spp"] = int(render["spp"]) // 2
+        self.train_layer = MCRenderLayer.from_config(train_render, "spp")
         self.eval_layer = MCRenderLayer.from_config(render, "eval_spp")
         self.eval_seed = int(render["seed"])
         self.pixels, self.probes, self.texels, self.free_probes = pixels, probes, texels, free_probes
@@ -196,6 +213,19 @@ class LightingSystem(L.LightningModule):
             out.append(pick + bi * flat.shape[1])
         return torch.cat(out)
 
+    def render_term(self, ctx, gb, fov, pix, target, scale) -> torch.Tensor:
+        """The re-render loss of flat pixels pix (M,) against target (M, 3), in units of each view's scale
+        (B,), by `self.render_loss` (`RENDER_LOSSES`). One render of 2M pixels for `decorrelated`: every
+        sample has its own random numbers, so the two halves are independent estimates."""
+        light = self.light_fn(ctx, gb, fov, self.generator)
+        if self.render_loss == "squared":
+            rgb, b = self.train_layer.render_pixels(gb, fov, pix, light, self.generator)
+            return (((rgb - target) / scale[b, None]) ** 2).mean()
+        rgb, b = self.train_layer.render_pixels(gb, fov, torch.cat([pix, pix]), light, self.generator)
+        M = len(pix)
+        first, second = (rgb[:M] - target) / scale[b[:M], None], (rgb[M:] - target) / scale[b[M:], None]
+        return (first * second).mean()
+
     # ------------------------------------------------------------------ Lightning
     def training_step(self, batch, batch_idx):
         fov = self.fov(batch)
@@ -215,11 +245,7 @@ class LightingSystem(L.LightningModule):
             if self.nmse_weight > 0:
                 losses["light_nmse"] = light_nmse_loss(pred, rays.radiance, scale[rays.image])
         pix = self.sample_pixels(batch["mask"][:, 0], self.pixels)
-        rgb, b = self.train_layer.render_pixels(
-            gb, fov, pix, self.light_fn(ctx, gb, fov, self.generator), self.generator
-        )
-        target = pixel_values(batch["im"], pix)
-        losses["render"] = (((rgb - target) / scale[b, None]) ** 2).mean()
+        losses["render"] = self.render_term(ctx, gb, fov, pix, pixel_values(batch["im"], pix), scale)
         total = (
             self.light_weight * losses.get("light", 0.0)
             + self.nmse_weight * losses.get("light_nmse", 0.0)

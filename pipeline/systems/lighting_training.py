@@ -52,6 +52,7 @@ def build_system(cfg: DictConfig) -> LightingSystem:
         nmse_weight=float(lt.nmse_weight),
         eval_stride=int(lt.eval_stride),
         ssrt_depth=str(lt.get("ssrt_depth", "valid")),
+        render_loss=str(lt.render_loss),
         optimizer=instantiate(cfg.optim.optimizer),
         scheduler=instantiate(sched) if sched is not None else None,
         seed=int(cfg.seed),
