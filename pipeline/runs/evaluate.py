@@ -4,8 +4,10 @@ depth si-RMSE) and the synthetic test split, with the paper's protocols (docs/de
 IIW or NYUv2.
 
 Writes under `report_dir`: metrics.json, table.md (laid out like the paper's table), sources.json,
-per-image CSVs `<model>_<benchmark>.csv`, and `<model>_nyuv2_cases.png` (best and worst images). A
-per-image score that is not finite is left out of its mean and counted in `<model>/<bench>/nonfinite`.
+per-image CSVs `<model>_iiw.csv` and `<model>_nyuv2.csv`, the synthetic splits' per-view CSVs
+`<model>_<entry>_views.csv` (each model scored once per split, beside its baselines:
+`synthetic_splits`), and `<model>_nyuv2_cases.png` (best and worst images). A per-image score that is not
+finite is left out of its mean and counted in `<model>/<bench>/nonfinite`.
 """
 
 from __future__ import annotations
@@ -146,11 +148,13 @@ def light_system(profile: str, material_path: str, light_path: str, seed: int, o
     return system
 
 
-def out_of_distribution(cfg: DictConfig, report: Path) -> dict[str, float]:
-    """Every MaterialNet model of `cfg.models` and the LightNet export `cfg.light_path` on the synthetic
-    test split and the out-of-distribution one (`systems.out_of_distribution`), beside the trivial
-    baselines fitted on the training split: `<model>/<entry>/...` and `lightnet/<entry>/...` for entry synthetic and
-    synthetic_ood; the per-view rows to `<model>_<entry>_views.csv`."""
+def synthetic_splits(cfg: DictConfig, report: Path) -> tuple[dict[str, float], dict[str, list[dict]]]:
+    """Every MaterialNet model of `cfg.models` on the synthetic test split and, with `cfg.ood_data_dir`,
+    the out-of-distribution one (`systems.out_of_distribution`), beside the trivial baselines fitted on the
+    training split, once per model and split; with the out-of-distribution split, the LightNet export
+    `cfg.light_path` on both. Returns the metrics (`<model>/<entry>/...`, `lightnet/<entry>/...` for entry
+    synthetic and synthetic_ood) and each model's synthetic-test rows; the per-view rows go to
+    `<model>_<entry>_views.csv`."""
     from torch.utils.data import DataLoader
 
     from pipeline.data.datasets import ShardDataset, collate_views
@@ -161,10 +165,15 @@ def out_of_distribution(cfg: DictConfig, report: Path) -> dict[str, float]:
     resamples, seed = int(cfg.bootstrap), int(cfg.seed)
     train = ShardDataset(cfg.data_dir, "train", lighting=True)
     loader = DataLoader(train, batch_size=16, collate_fn=collate_views)
-    material_baselines, constants = MaterialBaselines.fit(loader), mean_training_radiance(loader)
-    roots = {"synthetic": cfg.data_dir, "synthetic_ood": cfg.ood_data_dir}
+    material_baselines = MaterialBaselines.fit(loader)
+    roots = {"synthetic": cfg.data_dir}
+    if cfg.ood_data_dir is not None:
+        roots["synthetic_ood"] = cfg.ood_data_dir
     sets = {entry: ShardDataset(root, ood.SPLITS[entry], lighting=True) for entry, root in roots.items()}
-    out = {}
+    for entry, dataset in sets.items():
+        if len(dataset) == 0:
+            raise ValueError(f"the {entry} test split is empty ({roots[entry]})")
+    out, synthetic_rows = {}, {}
     for name, path in cfg.models.items():
         net, _ = load_material_export(path)
         for entry, dataset in sets.items():
@@ -172,13 +181,25 @@ def out_of_distribution(cfg: DictConfig, report: Path) -> dict[str, float]:
             _write_csv(report / f"{name}_{entry}_views.csv", rows)
             summary = ood.material_summary(rows, resamples, seed)
             out.update({f"{name}/{entry}/{k.removeprefix('model/')}": v for k, v in summary.items()})
+            if entry == "synthetic":
+                synthetic_rows[name] = rows
+    if cfg.ood_data_dir is None:
+        return out, synthetic_rows
+    constants = mean_training_radiance(loader)
     system = light_system(str(cfg.profile_name), cfg.models.trained, cfg.light_path, seed, list(cfg.light_overrides))
     for entry, dataset in sets.items():
         rows = ood.lighting_view_rows(system, dataset, constants)
         _write_csv(report / f"lightnet_{entry}_views.csv", rows)
         summary = ood.lighting_summary(rows, resamples, seed)
         out.update({f"lightnet/{entry}/{k.removeprefix('model/')}": v for k, v in summary.items()})
-    return out
+    return out, synthetic_rows
+
+
+def model_columns(rows: list[dict]) -> list[dict]:
+    """The model's own scores of `material_view_rows` rows ({id, <metric>}), without the baselines'."""
+    return [
+        {"id": r["id"], **{k.removeprefix("model/"): v for k, v in r.items() if k.startswith("model/")}} for r in rows
+    ]
 
 
 def run(cfg: DictConfig) -> dict[str, float]:
@@ -193,7 +214,9 @@ def run(cfg: DictConfig) -> dict[str, float]:
     results, metrics = {}, {}
     with stage_run("evaluate", cfg, tags={"data_source": f"{sources['iiw']}+{sources['nyuv2']}+synthetic"}) as run:
         mlflow.log_params({"iiw_source": sources["iiw"], "nyuv2_source": sources["nyuv2"]})
-        loaders = test_loaders(bench["iiw"][0], bench["nyuv2"][0], cfg.data_dir)  # read once, used per model
+        loaders = test_loaders(bench["iiw"][0], bench["nyuv2"][0])  # read once, used per model
+        split_metrics, synthetic_rows = synthetic_splits(cfg, report)
+        metrics.update(split_metrics)
         nyu = loaders[BENCHMARKS.index("nyuv2")].dataset
         for name, path in cfg.models.items():
             net, meta = load_material_export(path)
@@ -210,13 +233,14 @@ def run(cfg: DictConfig) -> dict[str, float]:
                 r.update({f"{prefix}/{k}": v for k, v in means.items()})
                 r[f"{prefix}/nonfinite"] = float(bad)
             r.update({f"nyu/{k}": v for k, v in normal_metrics.pooled_stats(system.pooled_angles).items()})
+            means, bad = finite_means(model_columns(synthetic_rows[name]))
+            r.update({f"synthetic/{k}": v for k, v in means.items()})
+            r["synthetic/nonfinite"] = float(bad)
             results[name] = r
             metrics.update({f"{name}/{k}": v for k, v in r.items()})
             panels = case_panels(net, meta, nyu, system.rows["nyuv2"], "normal_deg", int(cfg.figure_cases))
             figure = ranked_cases(panels, report / f"{name}_nyuv2_cases.png")
             mlflow.log_artifact(str(figure), "figures")
-        if cfg.ood_data_dir is not None:
-            metrics.update(out_of_distribution(cfg, report))
         (report / "table.md").write_text(markdown_table(results, sources))
         (report / "sources.json").write_text(json.dumps(sources, indent=1) + "\n")
         publish(report, metrics)

@@ -5,7 +5,8 @@ docs/design.md, section 6, score one image at a time:
   iiw        {"id", "photo" (H, W, 3) uint8 sRGB, "judgements"}: WHDR in % (gamma and linear conventions)
   nyuv2      {"index", "photo", "depth" (H, W) m, "normal" (H, W, 3), "valid" (H, W)}: normal angle, si-RMSE,
              median-scaled depth errors, and the angles for the pooled statistics
-  synthetic  a `ShardDataset` item: the synthetic-test map errors
+The synthetic test split is scored once per model beside its baselines by `out_of_distribution`
+(`material_view_rows`), not here.
 Per-image rows are kept in `rows[benchmark]` (written as CSV by the stage); their means are logged per
 model and benchmark.
 """
@@ -20,15 +21,13 @@ import torch
 from torch.utils.data import DataLoader, Dataset
 
 from pipeline.data import iiw, nyuv2
-from pipeline.data.datasets import ShardDataset
 from pipeline.data.formats.photo import srgb8_to_linear
 from pipeline.metrics import depth as depth_metrics
 from pipeline.metrics import normal as normal_metrics
-from pipeline.metrics.synthetic import material_metrics
 from pipeline.metrics.whdr import whdr
 from pipeline.models.material_net import MaterialNet, predict_maps
 
-BENCHMARKS = ("iiw", "nyuv2", "synthetic")
+BENCHMARKS = ("iiw", "nyuv2")
 
 
 class IIWTest(Dataset):
@@ -74,12 +73,12 @@ def one_item(items: list):
     return items[0]
 
 
-def test_loaders(iiw_root, nyu_root, data_dir) -> list[DataLoader]:
-    """The three test dataloaders in `BENCHMARKS` order, one image per batch."""
-    sets = (IIWTest(iiw_root), NYUTest(nyu_root), ShardDataset(data_dir, "test", lighting=False))
-    for name, ds in zip(BENCHMARKS, sets, strict=True):
+def test_loaders(iiw_root, nyu_root) -> list[DataLoader]:
+    """The test dataloaders in `BENCHMARKS` order, one image per batch."""
+    sets = (IIWTest(iiw_root), NYUTest(nyu_root))
+    for name, ds, root in zip(BENCHMARKS, sets, (iiw_root, nyu_root), strict=True):
         if len(ds) == 0:
-            raise ValueError(f"the {name} test split is empty ({getattr(ds, 'root', data_dir)})")
+            raise ValueError(f"the {name} test split is empty ({root})")
     return [DataLoader(ds, batch_size=1, collate_fn=one_item) for ds in sets]
 
 
@@ -124,8 +123,3 @@ class BenchmarkEvaluation(L.LightningModule):
             "depth_si_nosqrt": depth_metrics.si_error(pred_m, depth),
             **depth_metrics.median_scaled(pred_m, depth),
         }
-
-    def _score_synthetic(self, item) -> dict:
-        batch = {k: v[None] for k, v in item.items() if torch.is_tensor(v)}
-        per = material_metrics(self.net(batch["im"]), batch)
-        return {"id": item["id"], **{k: float(v[0]) for k, v in per.items()}}

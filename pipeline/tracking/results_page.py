@@ -91,6 +91,18 @@ def read_views(path: Path) -> dict[str, np.ndarray] | None:
     return cols
 
 
+MODELS = ("trained", "finetuned")  # the evaluate stage's MaterialNet models, in its CSVs' names
+
+
+def model_scores(views: dict[str, np.ndarray] | None) -> dict[str, np.ndarray] | None:
+    """A per-view table without its baselines' columns: the id, then the model's own scores (a
+    `<model>_<split>_views.csv` names them `model/<metric>`; the benchmarks' CSVs hold nothing else)."""
+    if views is None or not any(k.startswith("model/") for k in views):
+        return views
+    id_col = next(iter(views))
+    return {id_col: views[id_col], **{k.removeprefix("model/"): v for k, v in views.items() if k.startswith("model/")}}
+
+
 def shown(reports: Path, path: Path) -> str:
     """`path` as the document names it: under `reports/`, wherever the reports folder is."""
     return "reports/" + path.relative_to(reports).as_posix()
@@ -284,9 +296,8 @@ def section_evaluate(reports: Path) -> list[str]:
         lines.append("Data sources: " + ", ".join(f"{k}: {v}" for k, v in sorted(src.items()) if isinstance(v, str)))
     lines.append("")
     rows = []
-    for bench, csv_name in (("iiw", "iiw"), ("nyu", "nyuv2"), ("synthetic", "synthetic")):
-        trained = read_views(reports / f"evaluate/trained_{csv_name}.csv")
-        tuned = read_views(reports / f"evaluate/finetuned_{csv_name}.csv")
+    for bench, csv_name in (("iiw", "iiw"), ("nyu", "nyuv2"), ("synthetic", "synthetic_views")):
+        trained, tuned = (model_scores(read_views(reports / f"evaluate/{m}_{csv_name}.csv")) for m in MODELS)
         if trained is None or tuned is None:
             continue
         id_col = next(iter(trained))
