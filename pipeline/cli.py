@@ -225,33 +225,114 @@ def _prepare_photo(photo: str | Path, material_path, light_path, fov: float):
     return prepare_view(im, material_net, meta, light_net, fov)
 
 
+def _material_spec(spec: str) -> tuple:
+    """`--material`: a class of `models.insertion.OBJECT_MATERIALS`, or a YAML file with `albedo` (R, G, B
+    linear in [0, 1]), `roughness` and `metallic` (each in [0, 1])."""
+    from pipeline.models.insertion import OBJECT_MATERIALS
+
+    if spec in OBJECT_MATERIALS:
+        return OBJECT_MATERIALS[spec]
+    path = Path(spec)
+    if path.suffix.lower() not in (".yaml", ".yml"):
+        raise EditError(f"--material {spec!r}: choose one of {sorted(OBJECT_MATERIALS)} or give a .yaml file")
+    import yaml
+
+    try:
+        data = yaml.safe_load(path.read_text())
+    except (OSError, yaml.YAMLError) as exc:
+        raise EditError(f"--material {path}: unreadable ({type(exc).__name__})") from exc
+    if not isinstance(data, dict):
+        raise EditError(f"--material {path}: expected a mapping with albedo, roughness, metallic")
+    missing = [k for k in ("albedo", "roughness", "metallic") if k not in data]
+    if missing:
+        raise EditError(f"--material {path}: missing key {missing[0]!r}")
+    try:
+        albedo = tuple(float(v) for v in data["albedo"])
+        rough, metal = float(data["roughness"]), float(data["metallic"])
+    except (TypeError, ValueError):
+        raise EditError(f"--material {path}: albedo must be three numbers, roughness and metallic numbers") from None
+    if len(albedo) != 3 or not all(0 <= v <= 1 for v in albedo):
+        raise EditError(f"--material {path}: albedo must be three numbers in [0, 1]")
+    for key, v in (("roughness", rough), ("metallic", metal)):
+        if not 0 <= v <= 1:
+            raise EditError(f"--material {path}: {key} {v} must be in [0, 1]")
+    return albedo, rough, metal
+
+
+def _object_shape(spec: str):
+    """`--object`: sphere, snowman, or a mesh file (OBJ, PLY, GLB) read as (vertices, faces) tensors."""
+    if spec in ("sphere", "snowman"):
+        return spec
+    import torch
+
+    from pipeline.data.formats.mesh import MeshError, read_mesh
+
+    try:
+        vertices, faces = read_mesh(spec)
+    except MeshError as exc:
+        raise EditError(f"--object {exc}") from None
+    return torch.from_numpy(vertices), torch.from_numpy(faces)
+
+
+def _per_object(values: list | None, name: str, count: int, default) -> list:
+    """One value of a repeatable option per object: given once (every object), once per --at, or not (default)."""
+    if not values:
+        return [default] * count
+    if len(values) == 1:
+        return values * count
+    if len(values) != count:
+        raise EditError(f"{name}: given {len(values)} times for {count} --at; give it once or once per --at")
+    return list(values)
+
+
+def insertion_objects(at: list[str], objects=None, scales=None, turns=None, materials=None) -> list:
+    """`models.insertion.InsertedObject`s from the repeatable `insert` options, each paired with its --at in
+    order; every value checked (and every mesh read) before any model is loaded."""
+    from pipeline.models.insertion import InsertedObject
+
+    count = len(at)
+    shapes = [_object_shape(o) for o in _per_object(objects, "--object", count, "sphere")]
+    sizes = _per_object(scales, "--scale", count, None)
+    angles = _per_object(turns, "--turn", count, 0.0)
+    looks = [_material_spec(m) for m in _per_object(materials, "--material", count, "mirror")]
+    out = []
+    for k in range(count):
+        row, col = _parse_pixel(at[k])
+        if sizes[k] is not None and not (math.isfinite(sizes[k]) and sizes[k] > 0):
+            raise EditError(f"--scale {sizes[k]}: must be a positive size in metres")
+        if not math.isfinite(angles[k]):
+            raise EditError(f"--turn {angles[k]}: must be a finite angle in degrees")
+        label = "--at" if count == 1 else f"--at #{k + 1}"
+        out.append(InsertedObject(shapes[k], row, col, looks[k], sizes[k], float(angles[k]), label))
+    return out
+
+
 def insert_object(
     photo,
-    at: str,
+    at: str | list[str],
     out,
-    kind: str = "sphere",
-    material: str = "mirror",
-    radius: float | None = None,
+    kind: str | list[str] = "sphere",
+    material: str | list[str] = "mirror",
+    scale: float | list[float] | None = None,
+    turn: float | list[float] = 0.0,
     fov: float = 70.0,
     spp: int = 64,
     seed: int = 0,
     material_path=DEFAULT_MATERIAL,
     light_path=DEFAULT_LIGHT,
 ) -> list[Path]:
-    """`invrender insert`: an object resting on the predicted surface at pixel `at` ("row,col"), lit by
-    LightNet through the MC render layer, composited into the photo; writes <out>.png and <out>.exr."""
-    from pipeline.models.insertion import OBJECT_MATERIALS, insert_into
+    """`invrender insert`: objects, each resting on the predicted surface at its pixel `at` ("row,col"),
+    lit by LightNet through the MC render layer, composited into the photo; writes <out>.png and <out>.exr.
+    Every option is one value (all objects) or a list of one per `at` (`insertion_objects`)."""
+    from pipeline.models.insertion import insert_into
 
+    listed = lambda v: v if isinstance(v, list) else ([v] if v is not None else None)  # noqa: E731
     png, exr = _output_paths(out)
-    if kind not in ("sphere", "snowman"):
-        raise EditError(f"--object {kind!r}: choose sphere or snowman")
-    if material not in OBJECT_MATERIALS:
-        raise EditError(f"--material {material!r}: choose one of {sorted(OBJECT_MATERIALS)}")
     if spp < 1:
         raise EditError(f"--spp {spp}: must be >= 1")
-    row, col = _parse_pixel(at)
+    objects = insertion_objects(listed(at), listed(kind), listed(scale), listed(turn), listed(material))
     view = _prepare_photo(photo, material_path, light_path, fov)
-    result, _ = insert_into(view, row, col, kind, material, radius, spp, seed)
+    result, _ = insert_into(view, objects, spp, seed)
     return _write_result(result.numpy(), png, exr, Path(photo).suffix.lower() == ".exr")
 
 
@@ -418,7 +499,8 @@ def _render_kwargs(args) -> dict:
 
 
 def _insert(args) -> int:
-    kwargs = {"kind": args.object, "material": args.material, "radius": args.radius, **_render_kwargs(args)}
+    kwargs = {"kind": args.object, "material": args.material, "scale": args.scale, "turn": args.turn}
+    kwargs.update(_render_kwargs(args))
     print("\n".join(str(p) for p in insert_object(args.photo, args.at, args.out, **kwargs)))
     return 0
 
@@ -511,10 +593,38 @@ def main(argv: list[str] | None = None) -> int:
     w.set_defaults(func=_whdr)
     i = sub.add_parser("insert", help="insert an object lit by LightNet into a photo (EXR linear, PNG/JPG sRGB)")
     i.add_argument("photo")
-    i.add_argument("--at", required=True, help="ROW,COL: the pixel whose predicted surface the object rests on")
-    i.add_argument("--object", default="sphere", choices=("sphere", "snowman"))
-    i.add_argument("--material", default="mirror", choices=MATERIAL_CLASSES)
-    i.add_argument("--radius", type=float, default=None, help="object size in metres (default: 1/16 of the view)")
+    i.add_argument(
+        "--at",
+        required=True,
+        action="append",
+        help="ROW,COL: the pixel whose predicted surface an object rests on (up along the predicted normal); "
+        "repeat it to insert several objects, the k-th --at with the k-th value of each option below",
+    )
+    i.add_argument(
+        "--object",
+        action="append",
+        help="sphere (default), snowman, or a mesh file (.obj, .ply, .glb; its up axis +y): once for every "
+        "object or once per --at",
+    )
+    i.add_argument(
+        "--material",
+        action="append",
+        help=f"one of {', '.join(MATERIAL_CLASSES)} (default mirror), or a .yaml file with albedo [R, G, B] "
+        "(linear, 0-1), roughness and metallic: once or once per --at",
+    )
+    i.add_argument(
+        "--scale",
+        type=float,
+        action="append",
+        help="the object's largest extent in metres (default: 1/8 of the view's width at its depth; at most "
+        "the room's depth): once or once per --at",
+    )
+    i.add_argument(
+        "--turn",
+        type=float,
+        action="append",
+        help="degrees about the object's up axis (default 0): once or once per --at",
+    )
     _add_render_args(i)
     i.set_defaults(func=_insert)
     e = sub.add_parser("edit", help="give a masked region another material, re-rendered under LightNet")

@@ -25,6 +25,7 @@ from pipeline.bench.common import median_seconds, publish
 from pipeline.data import cases as case_io
 from pipeline.metrics.insertion import case_scores
 from pipeline.models.insertion import (
+    InsertedObject,
     composite_gbuffer,
     insert_into,
     light_net_radiance,
@@ -53,7 +54,7 @@ def speed(root, material, light, resolutions, spps, repeats: int) -> list[dict]:
 
             def insert(photo=photo, H=H, W=W, spp=spp, pixels=pixels):
                 prepared = prepare_view(photo, *material, light, fov)
-                _, pix = insert_into(prepared, H // 2, W // 2, "sphere", "mirror", None, spp, 0)
+                _, pix = insert_into(prepared, [InsertedObject("sphere", H // 2, W // 2)], spp, 0)
                 pixels["n"] = len(pix)
 
             rows.append(

@@ -5,7 +5,8 @@ z-depth, roughness, metallic) at the pixels where it lies in front of the scene;
 material of a region and keeps its geometry. The changed pixels are re-rendered under an incident
 radiance callback and composited into the photo. The callback sees the scene *without* the object:
 LightNet traces its secondary rays (SSRT) against the scene's depth, as a new object would see the room
-(its own interreflection and the shadows it would cast on the room are not modelled).
+(its own interreflection, the other objects' and the shadows they would cast on the room are not modelled).
+Objects are spheres, snowmen or triangle meshes (`InsertedObject`), several in one insertion.
 
 All tensors are of one view: G-buffers depth (1, H, W) metres, normal/albedo (1, 3, H, W), material
 (1, 2, H, W); pixels (M,) flat indices into H*W.
@@ -23,7 +24,8 @@ from pipeline.models.light_net.branches import image_scale
 from pipeline.models.material_net import predict_maps
 from pipeline.models.render_layer import MCRenderLayer, PointRadianceFn
 from pipeline.ops.camera import backproject, pixel_directions
-from pipeline.ops.primitives import object_spheres, raycast_spheres
+from pipeline.ops.meshes import place_mesh, raycast_mesh
+from pipeline.ops.primitives import LIFT_M, object_spheres, raycast_spheres
 
 
 class InsertionError(ValueError):
@@ -93,14 +95,38 @@ def light_net_radiance(net, ctx: dict, scene: dict, fov_x: float, seed: int) -> 
     return radiance
 
 
-def object_gbuffer(spheres: torch.Tensor, scene_depth: torch.Tensor, fov_x: float) -> dict | None:
-    """The G-buffer of an inserted union of spheres (S, 4) (view space, metres) where it lies in front of
-    the scene: pixel (M,) flat, normal (M, 3), depth (M,) z-depth metres; None if nothing is visible.
+Shape = torch.Tensor | tuple[torch.Tensor, torch.Tensor]  # spheres (S, 4), or a mesh (vertices (V, 3), faces (F, 3))
+
+
+def cast_shape(shape: Shape, origin: torch.Tensor, direction: torch.Tensor):
+    """Nearest hits (t (N,), inf on a miss; unit normal (N, 3) facing the ray) of rays with an inserted
+    shape: a union of spheres (`ops.primitives.raycast_spheres`) or a triangle mesh (`ops.meshes`), whose
+    triangles are tested only by the rays that meet its bounding sphere."""
+    if isinstance(shape, torch.Tensor):
+        return raycast_spheres(origin, direction, shape)
+    vertices, faces = shape
+    vertices = vertices.to(origin.dtype)
+    centre = (vertices.max(0).values + vertices.min(0).values) / 2
+    bound = torch.cat([centre, (vertices - centre).norm(dim=-1).max().reshape(1) * 1.001])[None]
+    t_bound, _ = raycast_spheres(origin, direction, bound)
+    near = torch.nonzero(torch.isfinite(t_bound)).squeeze(-1)
+    t = torch.full_like(t_bound, float("inf"))
+    normal = torch.zeros_like(origin)
+    if near.numel():
+        t_near, n_near = raycast_mesh(origin[near], direction[near], vertices, faces)
+        t, normal = t.index_put((near,), t_near), normal.index_put((near,), n_near)
+    return t, normal
+
+
+def object_gbuffer(shape: Shape, scene_depth: torch.Tensor, fov_x: float) -> dict | None:
+    """The G-buffer of an inserted shape (`cast_shape`; view space, metres) where it lies in front of the
+    scene: pixel (M,) flat, normal (M, 3), depth (M,) z-depth metres; None if nothing is visible.
     scene_depth (H, W) metres, 0 or inf where the scene has no surface (the object is visible there)."""
     H, W = scene_depth.shape
-    dirs = pixel_directions(H, W, fov_x, dtype=spheres.dtype).reshape(-1, 3)
+    dtype = shape.dtype if isinstance(shape, torch.Tensor) else torch.float64
+    dirs = pixel_directions(H, W, fov_x, dtype=dtype).reshape(-1, 3)
     unit = torch.nn.functional.normalize(dirs, dim=-1)
-    t, normal = raycast_spheres(torch.zeros_like(unit), unit, spheres)
+    t, normal = cast_shape(shape, torch.zeros_like(unit), unit)
     z = t * -unit[:, 2]
     scene = scene_depth.reshape(-1).to(z.dtype)
     behind_nothing = (scene <= 0) | ~torch.isfinite(scene)
@@ -211,43 +237,85 @@ def prepare_view(
     )
 
 
-def insert_into(
-    view: PreparedView, row: int, col: int, kind: str, material: str, radius: float | None, spp: int, seed: int
-):
-    """An object (`ops.primitives.object_spheres` of `kind`, one of OBJECT_MATERIALS) resting on the predicted
-    surface at pixel (row, col), its size `radius` metres (default: 1/16 of the view), rendered at `spp`
-    under LightNet on a `prepare_view`: (composited photo (H, W, 3), object pixels (M,))."""
+@dataclass
+class InsertedObject:
+    """One object of an insertion. shape: "sphere", "snowman" (`ops.primitives.object_spheres`) or a mesh
+    (vertices (V, 3), faces (F, 3) long, its up axis +y: `ops.meshes`); (row, col) the pixel whose predicted
+    surface it rests on (up along the predicted normal there); material (albedo (r, g, b) linear, roughness,
+    metallic); size: its largest extent in metres (None: 1/8 of the view's width at its depth); turn: degrees
+    about its up axis; label: how an error names it."""
+
+    shape: str | tuple[torch.Tensor, torch.Tensor]
+    row: int
+    col: int
+    material: tuple = OBJECT_MATERIALS["mirror"]
+    size: float | None = None
+    turn: float = 0.0
+    label: str = "--at"
+
+
+def _object_shape(view: PreparedView, obj: InsertedObject) -> Shape:
+    """The object placed in view space (`Shape`), resting on the predicted surface at its pixel."""
     gb, fov = view.pred, view.fov
     H, W = view.photo.shape[:2]
-    at = f"{row},{col}"
-    if not (0 <= row < H and 0 <= col < W):
-        raise InsertionError(f"--at {at}: pixel (row {row}, col {col}) is outside the {W}x{H} image")
-    point = backproject(gb["depth"], fov)[0, row, col]
-    z = float(gb["depth"][0, row, col])
+    at = f"{obj.label} {obj.row},{obj.col}"
+    if not (0 <= obj.row < H and 0 <= obj.col < W):
+        raise InsertionError(f"{at}: pixel (row {obj.row}, col {obj.col}) is outside the {W}x{H} image")
+    point = backproject(gb["depth"], fov)[0, obj.row, obj.col]
+    z = float(gb["depth"][0, obj.row, obj.col])
     if not math.isfinite(z) or z <= 0:
-        raise InsertionError(f"--at {at}: no valid surface at that pixel (predicted depth {z})")
-    n = torch.nn.functional.normalize(gb["normal"][0, :, row, col], dim=0)
+        raise InsertionError(f"{at}: no valid surface at that pixel (predicted depth {z})")
+    n = torch.nn.functional.normalize(gb["normal"][0, :, obj.row, obj.col], dim=0)
     if float(n @ point) > 0:  # a surface seen from behind (a prediction error): stand on its visible side
         n = -n
     f = (W / 2) / math.tan(math.radians(fov) / 2)
-    r = float(radius) if radius is not None else z * (W / 16) / f
-    if not 0 < r < 10 * z:
-        raise InsertionError(f"--radius {radius}: must be positive and at most 10x the depth there ({z:.2f} m)")
-    spheres = object_spheres(kind, point, n, r)  # resting on the predicted surface, up = its normal
-    obj = object_gbuffer(spheres, gb["depth"][0], fov)
-    if obj is None:
-        raise InsertionError(f"--at {at}: the object would not be visible (behind the scene or outside the view)")
-    albedo, rough, metal = OBJECT_MATERIALS[material]
-    M = len(obj["pixel"])
+    size = float(obj.size) if obj.size is not None else z * (W / 8) / f
+    depth = gb["depth"][0]
+    room = float(depth[torch.isfinite(depth) & (depth > 0)].max())  # the farthest surface seen: the room's scale
+    if not 0 < size <= room:
+        raise InsertionError(f"--scale {obj.size}: must be positive and at most the room's depth ({room:.2f} m)")
+    if isinstance(obj.shape, str):
+        return object_spheres(obj.shape, point, n, size / 2)  # resting on the surface, up = its normal
+    vertices, faces = obj.shape
+    return place_mesh(vertices, point.double(), n.double(), size, obj.turn, LIFT_M), faces
+
+
+def insert_into(view: PreparedView, objects: list[InsertedObject], spp: int, seed: int):
+    """Objects (`InsertedObject`) inserted into a `prepare_view` together, each where it is nearest to the
+    camera, rendered at `spp` under LightNet (which sees the room without them): (composited photo (H, W,
+    3), the objects' pixels (M,))."""
+    if not objects:
+        raise InsertionError("--object: nothing to insert")
+    gb, fov = view.pred, view.fov
+    pixels, depth, normal, albedo, material = [], [], [], [], []
+    for obj in objects:
+        found = object_gbuffer(_object_shape(view, obj), gb["depth"][0], fov)
+        if found is None:
+            where = f"{obj.label} {obj.row},{obj.col}"
+            raise InsertionError(f"{where}: the object would not be visible (behind the scene or outside the view)")
+        M = len(found["pixel"])
+        colour, rough, metal = obj.material
+        pixels.append(found["pixel"])
+        depth.append(found["depth"].float())
+        normal.append(found["normal"].float())
+        albedo.append(torch.tensor(colour, dtype=torch.float32).expand(M, 3))
+        material.append(torch.tensor([rough, metal], dtype=torch.float32).expand(M, 2))
+    pixel, z = torch.cat(pixels), torch.cat(depth)
+    # where objects overlap, the nearest: sort by depth, keep each pixel's first
+    order = torch.argsort(z, stable=True)
+    uniq, inverse = torch.unique(pixel[order], return_inverse=True)
+    first = torch.full((len(uniq),), len(order), dtype=torch.long)
+    first = first.scatter_reduce(0, inverse, torch.arange(len(order)), reduce="amin")  # nearest per pixel
+    keep = order[first]  # ordered by pixel, as torch.unique sorts
     shading = composite_gbuffer(
         gb,
-        obj["pixel"],
-        albedo=torch.tensor(albedo).expand(M, 3),
-        material=torch.tensor([rough, metal]).expand(M, 2),
-        normal=obj["normal"].float(),
-        depth=obj["depth"].float(),
+        pixel[keep],
+        albedo=torch.cat(albedo)[keep],
+        material=torch.cat(material)[keep],
+        normal=torch.cat(normal)[keep],
+        depth=z[keep],
     )
     light = light_net_radiance(view.net, view.ctx_pred, gb, fov, seed)
     with torch.no_grad():
-        rgb = render_case(MCRenderLayer(spp=spp), shading, fov, obj["pixel"], light, seed)
-    return composite_image(view.photo, obj["pixel"], rgb), obj["pixel"]
+        rgb = render_case(MCRenderLayer(spp=spp), shading, fov, pixel[keep], light, seed)
+    return composite_image(view.photo, pixel[keep], rgb), pixel[keep]

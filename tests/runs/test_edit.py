@@ -162,6 +162,30 @@ def test_insert_and_edit_composite_into_the_photo(photos, exports, tmp_path, kin
     assert (tmp_path / "ed.png").is_file()
 
 
+def test_insert_several_objects_a_mesh_and_a_material_file(photos, exports, tmp_path):
+    import trimesh
+
+    from pipeline.cli import main
+    from pipeline.data.formats.exr import read_exr
+    from pipeline.data.formats.photo import read_linear
+
+    H, W = photos["size"]
+    photo = read_linear(photos["exr"])
+    mesh = tmp_path / "box.glb"
+    trimesh.creation.box(extents=(1.0, 2.0, 1.0)).export(mesh)
+    (tmp_path / "red.yaml").write_text("albedo: [0.8, 0.1, 0.1]\nroughness: 0.4\nmetallic: 0\n")
+    args = ["insert", str(photos["exr"]), "--at", f"{H // 2},{W // 4}", "--object", "sphere", "--material", "mirror"]
+    args += ["--at", f"{H // 2},{3 * W // 4}", "--object", str(mesh), "--material", str(tmp_path / "red.yaml")]
+    assert main([*args, "--turn", "30", "--out", str(tmp_path / "two.exr"), *_models(exports)]) == 0
+    result = read_exr(tmp_path / "two.exr")
+    changed = np.abs(result - photo).max(-1) > 0
+    cols = np.nonzero(changed)[1]
+    assert (cols < W // 2).any() and (cols >= W // 2).any()  # both objects, each on its side
+    assert changed.sum() < H * W / 2 and np.isfinite(result).all()
+    red = result[:, W // 2 :][changed[:, W // 2 :]]
+    assert red[:, 0].mean() > red[:, 2].mean()  # the material file's colour on the mesh
+
+
 def test_insert_and_edit_refuse_bad_input_naming_it_and_write_nothing(photos, exports, tmp_path, capsys):
     from PIL import Image
 
@@ -171,6 +195,10 @@ def test_insert_and_edit_refuse_bad_input_naming_it_and_write_nothing(photos, ex
     Image.fromarray(np.zeros((H + 1, W), np.uint8)).save(tmp_path / "big_mask.png")
     Image.fromarray(np.zeros((H, W), np.uint8)).save(tmp_path / "empty_mask.png")
     (tmp_path / "corrupt.png").write_bytes(b"\x89PNG\r\n\x1a\nnot a png")
+    fan = tmp_path / "fan.obj"  # three triangles on one edge
+    fan.write_text("v 0 0 0\nv 1 0 0\nv 0 1 0\nv 0 -1 0\nv 0 0 1\nf 1 2 3\nf 1 2 4\nf 1 2 5\n")
+    bad_yaml = tmp_path / "bad.yaml"
+    bad_yaml.write_text("albedo: [0.5, 0.5, 0.5]\nmetallic: 0\n")
     photo, out = str(photos["png"]), tmp_path / "outs" / "x.png"
     out.parent.mkdir()
     models = _models(exports)
@@ -224,6 +252,17 @@ def test_insert_and_edit_refuse_bad_input_naming_it_and_write_nothing(photos, ex
         ],
         "light.pt": ["insert", photo, "--at", "3,3", "--out", str(out), "--material-net", str(exports / "light.pt")],
         "--out": ["insert", photo, "--at", "3,3", "--out", str(tmp_path / "nowhere" / "x.png"), *models],
+        "--scale 0": ["insert", photo, "--at", "3,3", "--scale", "0", "--out", str(out), *models],
+        "room's depth": ["insert", photo, "--at", f"{H // 2},{W // 2}", "--scale", "1000", "--out", str(out), *models],
+        "non-manifold": ["insert", photo, "--at", "3,3", "--object", str(fan), "--out", str(out), *models],
+        "given 2 times for 3 --at": [
+            "insert",
+            photo,
+            *("--at", "3,3", "--at", "4,4", "--at", "5,5"),
+            *("--turn", "10", "--turn", "20"),
+            *("--out", str(out), *models),
+        ],
+        "missing key 'roughness'": ["insert", photo, "--at", "3,3", "--material", str(bad_yaml), "--out", str(out)],
         ".jpg": ["insert", photo, "--at", "3,3", "--out", str(tmp_path / "x.jpg"), *models],
     }
     for needle, argv in cases.items():
