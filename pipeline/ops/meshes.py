@@ -75,3 +75,23 @@ def raycast_mesh(origin: torch.Tensor, direction: torch.Tensor, vertices: torch.
     normal = torch.where(((normal * direction).sum(-1) > 0)[:, None], -normal, normal)
     normal = torch.where(torch.isfinite(t_out)[:, None], normal, torch.zeros_like(normal))
     return t_out, normal
+
+
+def lathe(profile: torch.Tensor, segments: int = 32) -> tuple[torch.Tensor, torch.Tensor]:
+    """A closed surface of revolution about +y: profile (K, 2) rows (radius > 0, height) from bottom to top,
+    turned through `segments` steps, capped at both ends. Returns vertices (K * segments + 2, 3) and
+    faces (2 * segments * K, 3) long, counter-clockwise seen from outside (a manifold, watertight mesh)."""
+    K = len(profile)
+    a = torch.arange(segments, dtype=profile.dtype) * (2 * math.pi / segments)
+    r, h = profile[:, 0:1], profile[:, 1:2]
+    ring = torch.stack([r * torch.cos(a), h.expand(-1, segments), -r * torch.sin(a)], -1)  # (K, segments, 3)
+    bottom, top = profile.new_tensor([[0.0, float(h[0]), 0.0]]), profile.new_tensor([[0.0, float(h[-1]), 0.0]])
+    vertices = torch.cat([ring.reshape(-1, 3), bottom, top])
+    idx = torch.arange(K * segments).reshape(K, segments)
+    nxt = torch.roll(idx, -1, dims=1)
+    a0, a1, b0, b1 = idx[:-1], nxt[:-1], idx[1:], nxt[1:]
+    side = torch.cat([torch.stack([a0, a1, b1], -1).reshape(-1, 3), torch.stack([a0, b1, b0], -1).reshape(-1, 3)])
+    cb, ct = K * segments, K * segments + 1
+    caps_bottom = torch.stack([torch.full((segments,), cb), nxt[0], idx[0]], -1)
+    caps_top = torch.stack([torch.full((segments,), ct), idx[-1], nxt[-1]], -1)
+    return vertices, torch.cat([side, caps_bottom, caps_top])

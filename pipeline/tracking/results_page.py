@@ -481,6 +481,8 @@ def bench_block(name: str, data: dict, profile: str) -> list[str]:
             lines += ["", f"{k}:", "", *md_table(header, cells)]
         elif isinstance(v, dict) and v and all(isinstance(x, int | float) for x in v.values()):
             lines += ["", f"{k}: " + ", ".join(f"{a} {num(b)}" for a, b in v.items())]
+    if name in BENCH_FIGURES:
+        lines += ["", f"![{name}](../reports/bench/{name}.png)"]
     quoted = data.get("quoted", {})
     if quoted:
         rows = [
@@ -523,6 +525,10 @@ BENCH_HEADLINES = {
     "light_net": ("speed", "hyper_apply"),
     "material_net": ("results",),
 }
+
+
+# benches whose figure the page shows (the others' PNGs lie beside their JSONs)
+BENCH_FIGURES = ("real_photo",)
 
 
 def section_benches(reports: Path, profile: str) -> list[str]:

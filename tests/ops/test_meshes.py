@@ -5,7 +5,7 @@ import math
 
 import torch
 
-from pipeline.ops.meshes import place_mesh, raycast_mesh, rotation_to
+from pipeline.ops.meshes import lathe, place_mesh, raycast_mesh, rotation_to
 
 
 def _cube() -> tuple[torch.Tensor, torch.Tensor]:
@@ -65,3 +65,14 @@ def test_place_mesh_scales_turns_and_rests_on_the_surface():
     torch.testing.assert_close(
         down @ torch.tensor([0.0, 1.0, 0.0], dtype=torch.float64), torch.tensor([0.0, -1.0, 0.0], dtype=torch.float64)
     )
+
+
+def test_lathe_is_a_closed_outward_surface_of_the_right_volume():
+    import trimesh
+
+    r, h, n = 0.4, 1.5, 24
+    v, f = lathe(torch.tensor([[r, 0.0], [r, h / 2], [r, h]], dtype=torch.float64), n)
+    mesh = trimesh.Trimesh(v.numpy(), f.numpy(), process=False)
+    assert mesh.is_watertight and mesh.is_winding_consistent
+    # a regular n-gon prism: volume n/2 r^2 sin(2 pi / n) h, positive when the faces point outwards
+    assert math.isclose(mesh.volume, n / 2 * r**2 * math.sin(2 * math.pi / n) * h, rel_tol=1e-9)
