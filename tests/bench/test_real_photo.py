@@ -39,7 +39,7 @@ def test_objects_are_a_mirror_sphere_and_two_vases(tmp_path):
     assert faces.shape[1] == 3 and vertices.shape[1] == 3
     assert objects[2].material[1] > objects[1].material[1]  # the diffuse vase is rougher
     report = {
-        "rows": [{"light_net": "x", "pixels": [(50, 20)]}],
+        "pixels": {"x": [(50, 20)]},
         "images": {"photo": np.full((60, 90, 3), 0.2), "x": np.full((60, 90, 3), 0.3)},
     }
     real_photo.plot(report, tmp_path / "p.png")
