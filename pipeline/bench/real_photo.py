@@ -91,12 +91,19 @@ def run(material_path: str, lights: dict[str, str], spp: int, seed: int) -> dict
         result, changed = insert_into(view, objects_at(pixels), spp, seed)
         seconds = time.perf_counter() - t0
         images[name] = result.numpy()
-        report["rows"].append(
-            {"light_net": name, "path": path, "pixels": pixels, "seconds": seconds, "object_pixels": int(len(changed))}
+        report["measured"]["insertions"].append(
+            {
+                "light_net": name,
+                "path": path,
+                "pixels": str(pixels),
+                "seconds (MaterialNet, LightNet, three objects)": seconds,
+                "object_pixels": int(len(changed)),
+            }
         )
-        if "depth" not in report:
+        report.setdefault("pixels", {})[name] = pixels
+        if "depth_pixels_with_disparity" not in report["measured"]:
             pred = view.pred["depth"][0].double()
-            valid = torch.from_numpy(np.isfinite(stereo_depth)) & (pred > 0)
+            valid = torch.from_numpy(np.isfinite(stereo_depth)) & (pred > 0)  # NaN: no disparity there
             truth = torch.from_numpy(np.nan_to_num(stereo_depth))
             log_ratio = (pred[valid] / truth[valid]).log()
             report["measured"].update(

@@ -44,3 +44,18 @@ def test_objects_are_a_mirror_sphere_and_two_vases(tmp_path):
     }
     real_photo.plot(report, tmp_path / "p.png")
     assert (tmp_path / "p.png").stat().st_size > 0
+
+
+def test_run_inserts_three_objects_and_checks_the_depth(micro_exports, monkeypatch):
+    H, W = 48, 64
+    g = np.random.default_rng(0)
+    depth = np.full((H, W), 2.0)
+    depth[:4] = np.nan  # no disparity there
+    monkeypatch.setattr(real_photo, "photo", lambda: (g.random((H, W, 3), dtype=np.float32) * 0.5, depth, 60.0))
+    monkeypatch.setattr(real_photo, "floor_pixels", lambda normal, d: [(40, 12), (40, 32), (40, 52)])
+    report = real_photo.run(str(micro_exports / "material.pt"), {"a": str(micro_exports / "light.pt")}, 2, 0)
+    m = report["measured"]
+    assert m["depth_pixels_with_disparity"] <= (H - 4) * W and math.isfinite(m["depth_log_rmse_after_scale"])
+    (row,) = m["insertions"]
+    assert row["light_net"] == "a" and row["object_pixels"] > 0
+    assert report["pixels"]["a"] == [(40, 12), (40, 32), (40, 52)] and set(report["images"]) == {"photo", "a"}
