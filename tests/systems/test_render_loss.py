@@ -71,21 +71,12 @@ def test_render_loss_expectation_is_bias_squared_plus_what_it_should_carry(micro
     assert float(var.mean()) > 3 * float(bias2.mean())
 
 
-def test_decorrelated_render_loss_needs_two_samples(micro_exports):
+@pytest.mark.parametrize(
+    ("spp", "render_loss", "message"),
+    [(1, "decorrelated", "render_loss=decorrelated needs at least 2"), (2, "l1", "lighting.render_loss='l1'")],
+)
+def test_bad_render_loss_settings_are_refused(micro_exports, spp, render_loss, message):
     light = read_export(micro_exports / "light.pt", LIGHT_FORMAT)["light_net"]
-    with pytest.raises(ValueError, match="render_loss=decorrelated needs at least 2"):
-        LightingSystem(
-            light_net=light,
-            material=None,
-            render={"estimator": "importance", "spp": 1, "eval_spp": 1, "seed": 0},
-            gbuffers="ground_truth",
-            render_loss="decorrelated",
-        )
-    with pytest.raises(ValueError, match="lighting.render_loss='l1'"):
-        LightingSystem(
-            light_net=light,
-            material=None,
-            render={"estimator": "importance", "spp": 2, "eval_spp": 2, "seed": 0},
-            gbuffers="ground_truth",
-            render_loss="l1",
-        )
+    render = {"estimator": "importance", "spp": spp, "eval_spp": spp, "seed": 0}
+    with pytest.raises(ValueError, match=message):
+        LightingSystem(light_net=light, material=None, render=render, gbuffers="ground_truth", render_loss=render_loss)
