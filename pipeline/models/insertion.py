@@ -118,15 +118,17 @@ def cast_shape(shape: Shape, origin: torch.Tensor, direction: torch.Tensor):
     return t, normal
 
 
-def object_gbuffer(shape: Shape, scene_depth: torch.Tensor, fov_x: float) -> dict | None:
-    """The G-buffer of an inserted shape (`cast_shape`; view space, metres) where it lies in front of the
-    scene: pixel (M,) flat, normal (M, 3), depth (M,) z-depth metres; None if nothing is visible.
-    scene_depth (H, W) metres, 0 or inf where the scene has no surface (the object is visible there)."""
+def object_gbuffer(shapes: list[Shape], scene_depth: torch.Tensor, fov_x: float) -> dict | None:
+    """The G-buffer of inserted shapes (`cast_shape`; view space, metres) where they lie in front of the
+    scene, each pixel showing the nearest shape: pixel (M,) flat, normal (M, 3), depth (M,) z-depth metres,
+    shape (M,) long, the index of the shape seen; None if nothing is visible.
+    scene_depth (H, W) metres, 0 or inf where the scene has no surface (an object is visible there)."""
     H, W = scene_depth.shape
-    dtype = shape.dtype if isinstance(shape, torch.Tensor) else torch.float64
-    dirs = pixel_directions(H, W, fov_x, dtype=dtype).reshape(-1, 3)
+    dirs = pixel_directions(H, W, fov_x, dtype=torch.float64).reshape(-1, 3)
     unit = torch.nn.functional.normalize(dirs, dim=-1)
-    t, normal = cast_shape(shape, torch.zeros_like(unit), unit)
+    hits = [cast_shape(shape, torch.zeros_like(unit), unit) for shape in shapes]
+    t, which = torch.stack([t for t, _ in hits]).min(0)  # the nearest shape along each ray
+    normal = torch.stack([n for _, n in hits])[which, torch.arange(len(unit))]
     z = t * -unit[:, 2]
     scene = scene_depth.reshape(-1).to(z.dtype)
     behind_nothing = (scene <= 0) | ~torch.isfinite(scene)
@@ -134,7 +136,7 @@ def object_gbuffer(shape: Shape, scene_depth: torch.Tensor, fov_x: float) -> dic
     pix = torch.nonzero(visible).squeeze(-1)
     if not pix.numel():
         return None
-    return {"pixel": pix, "normal": normal[pix], "depth": z[pix]}
+    return {"pixel": pix, "normal": normal[pix], "depth": z[pix], "shape": which[pix]}
 
 
 def composite_image(photo: torch.Tensor, pixels: torch.Tensor, values: torch.Tensor) -> torch.Tensor:
@@ -281,41 +283,32 @@ def _object_shape(view: PreparedView, obj: InsertedObject) -> Shape:
 
 
 def insert_into(view: PreparedView, objects: list[InsertedObject], spp: int, seed: int):
-    """Objects (`InsertedObject`) inserted into a `prepare_view` together, each where it is nearest to the
-    camera, rendered at `spp` under LightNet (which sees the room without them): (composited photo (H, W,
-    3), the objects' pixels (M,))."""
+    """Objects (`InsertedObject`) inserted into a `prepare_view` together, each pixel showing the nearest,
+    rendered at `spp` under LightNet (which sees the room without them): (composited photo (H, W, 3), the
+    objects' pixels (M,)). An object seen nowhere (behind the scene, outside the view, or wholly behind
+    another object) is refused, naming it."""
     if not objects:
         raise InsertionError("--object: nothing to insert")
     gb, fov = view.pred, view.fov
-    pixels, depth, normal, albedo, material = [], [], [], [], []
-    for obj in objects:
-        found = object_gbuffer(_object_shape(view, obj), gb["depth"][0], fov)
-        if found is None:
+    found = object_gbuffer([_object_shape(view, obj) for obj in objects], gb["depth"][0], fov)
+    for k, obj in enumerate(objects):
+        if found is None or not (found["shape"] == k).any():
             where = f"{obj.label} {obj.row},{obj.col}"
-            raise InsertionError(f"{where}: the object would not be visible (behind the scene or outside the view)")
-        M = len(found["pixel"])
-        colour, rough, metal = obj.material
-        pixels.append(found["pixel"])
-        depth.append(found["depth"].float())
-        normal.append(found["normal"].float())
-        albedo.append(torch.tensor(colour, dtype=torch.float32).expand(M, 3))
-        material.append(torch.tensor([rough, metal], dtype=torch.float32).expand(M, 2))
-    pixel, z = torch.cat(pixels), torch.cat(depth)
-    # where objects overlap, the nearest: sort by depth, keep each pixel's first
-    order = torch.argsort(z, stable=True)
-    uniq, inverse = torch.unique(pixel[order], return_inverse=True)
-    first = torch.full((len(uniq),), len(order), dtype=torch.long)
-    first = first.scatter_reduce(0, inverse, torch.arange(len(order)), reduce="amin")  # nearest per pixel
-    keep = order[first]  # ordered by pixel, as torch.unique sorts
+            raise InsertionError(
+                f"{where}: the object would not be visible (behind the scene or another object, or outside the view)"
+            )
+    albedo = torch.tensor([obj.material[0] for obj in objects], dtype=torch.float32)
+    material = torch.tensor([obj.material[1:] for obj in objects], dtype=torch.float32)
+    pixel, seen = found["pixel"], found["shape"]
     shading = composite_gbuffer(
         gb,
-        pixel[keep],
-        albedo=torch.cat(albedo)[keep],
-        material=torch.cat(material)[keep],
-        normal=torch.cat(normal)[keep],
-        depth=z[keep],
+        pixel,
+        albedo=albedo[seen],
+        material=material[seen],
+        normal=found["normal"].float(),
+        depth=found["depth"].float(),
     )
     light = light_net_radiance(view.net, view.ctx_pred, gb, fov, seed)
     with torch.no_grad():
-        rgb = render_case(MCRenderLayer(spp=spp), shading, fov, pixel[keep], light, seed)
-    return composite_image(view.photo, pixel[keep], rgb), pixel[keep]
+        rgb = render_case(MCRenderLayer(spp=spp), shading, fov, pixel, light, seed)
+    return composite_image(view.photo, pixel, rgb), pixel

@@ -95,7 +95,7 @@ def test_object_gbuffers_match_analytic_ray_casting(micro_root):
                 continue
             world = np.asarray(c.description["spheres"])
             view = np.concatenate([(world[:, :3] - w2v[:3, 3]) @ w2v[:3, :3], world[:, 3:]], 1)
-            g = object_gbuffer(torch.from_numpy(view), depth, float(cam["fov_x_deg"]))
+            g = object_gbuffer([torch.from_numpy(view)], depth, float(cam["fov_x_deg"]))
             same = np.intersect1d(g["pixel"].numpy(), c.pixel.numpy())
             # pixel sets agree but where a silhouette or a contact crosses a pixel centre within float32
             # noise: a couple of pixels, or 5 % of a large object
