@@ -42,7 +42,6 @@ from pathlib import Path
 import numpy as np
 import torch
 from matplotlib.figure import Figure
-from omegaconf import OmegaConf
 from tqdm import tqdm
 
 from pipeline.bench.common import edit_object_cases, write_report
@@ -51,7 +50,6 @@ from pipeline.data.synth.scene import Room
 from pipeline.metrics.bootstrap import paired_bootstrap
 from pipeline.metrics.insertion import case_scores
 from pipeline.models.insertion import composite_gbuffer, composite_image, render_case
-from pipeline.models.render_layer import MCRenderLayer
 from pipeline.ops.envmap import sphere_lookup, stratified_square, texel_directions
 
 CLASSES = ("mirror", "glossy", "diffuse")
@@ -191,13 +189,21 @@ def _distant(radiance: torch.Tensor):
     return light
 
 
+def guide_of(radiance: torch.Tensor, cfg):
+    """The light guide of a distant map (1, rows, cols, 3) under the stage's scoring (None when the scoring
+    layer takes none)."""
+    from pipeline.systems.insertion_scoring import probe_guide
+
+    return probe_guide(radiance) if cfg.scoring.guide and cfg.scoring.layer == "converged" else None
+
+
 def _lightnet_renders(ctx, v, shading, case, case_seed, generator, fine_layer, truth, tallies) -> dict:
     """The `lightnet` row at the stage's spp (advancing the view's generator as the `edit` stage does),
     then at the fine layer's spp LightNet alone and with either ray class given `truth`, each from the
     generator state the `lightnet` row started from; the generator is left where the `lightnet` row ended."""
     split = split_light(v.net, v.ctx_pred, v.pred, v.fov, generator, truth, tallies.setdefault(case.label, {}))
     before = generator.get_state()
-    out = {"lightnet": render_case(ctx["layer"], shading, v.fov, case.pixel, split["lightnet"], case_seed)}
+    out = {"lightnet": render_case(ctx["layers"]["lightnet"], shading, v.fov, case.pixel, split["lightnet"], case_seed)}
     after = generator.get_state()
     for name, part in zip(("lightnet_fine", *SPLIT_ROWS), ("lightnet", *SPLIT_ROWS), strict=True):
         generator.set_state(before)
@@ -224,7 +230,7 @@ def run(
     cfg = compose("edit", overrides)
     shared = insertion_scoring.stage_setup(cfg)
     spp = int(cfg.scoring.spp) if spp is None else int(spp)
-    fine_layer = MCRenderLayer.from_config({**OmegaConf.to_container(cfg.render, resolve=True), "spp": spp})
+    fine_layer = insertion_scoring.scoring_layer(cfg, spp)
     oracle = _edit_oracle(edit_cases)
     names = [row_name(s) for s in sizes]
     records, panels, tallies = [], [], {}
@@ -251,11 +257,19 @@ def run(
             renders = {}
             with torch.no_grad():
                 lights = {n: _distant(m) for n, m in maps.items()}
+                # each distant map guides its own samples, as `score_view` guides the nearest probe's
+                guides = {n: guide_of(m, cfg) for n, m in maps.items()}
                 renders["nearest_probe"] = render_case(
-                    ctx["layer"], shading, v.fov, case.pixel, lights["nearest_probe_fine"], case_seed
+                    ctx["layers"]["nearest_probe"],
+                    shading,
+                    v.fov,
+                    case.pixel,
+                    lights["nearest_probe_fine"],
+                    case_seed,
+                    guides["nearest_probe_fine"],
                 )
                 for name, light in lights.items():
-                    renders[name] = render_case(fine_layer, shading, v.fov, case.pixel, light, case_seed)
+                    renders[name] = render_case(fine_layer, shading, v.fov, case.pixel, light, case_seed, guides[name])
                 renders.update(
                     _lightnet_renders(ctx, v, shading, case, case_seed, generator, fine_layer, maps[names[0]], tallies)
                 )
@@ -297,7 +311,11 @@ def run(
         "light_path": str(cfg.light_path),
         "material_path": str(cfg.material_path),
         "split": str(cfg.split),
-        "spp": {"lightnet, nearest_probe": int(cfg.scoring.spp), "centre maps": spp},
+        "spp": {
+            "lightnet": insertion_scoring.row_spp(cfg, "lightnet"),
+            "nearest_probe": insertion_scoring.row_spp(cfg, "nearest_probe"),
+            "centre maps": spp,
+        },
         "sizes": [list(s) for s in sizes],
         "strata": int(strata),
         "rows": rows,

@@ -1,18 +1,18 @@
-"""`python -m pipeline.bench.scoring_convergence`: how many samples per pixel the `edit` stage's scoring
-needs before Monte Carlo noise stops moving any row's PSNR.
+"""`python -m pipeline.bench.scoring_convergence`: is the `edit` stage's scoring converged, i.e. does
+any row's PSNR still move when its samples per pixel grow?
 
 Noise lowers the PSNR of a sharp light (a lamp, the oracle's exact radiance) more than that of a blurred
-one, so rows scored at unequal or unconverged noise favour blur. This renders every case of the `edit`
-stage's test views (or the first `--max-views`) under every row at each sample count of `--spp`, with one
-render layer for all rows and the stage's seeds (`insertion_scoring.score_view`), and reports per row
-and case class the mean PSNR at each count and, for each count N with 4N also measured, the mean paired
-change PSNR(4N) - PSNR(N) with a 95 % bootstrap interval over views. A row is converged at N when that
-change is within `--tolerance` dB (0.1) in every class; `scoring.spp` in conf/edit.yaml should be a count
-at which every row is.
+one, so rows scored at unconverged noise favour blur. This renders every case of the `edit` stage's test
+views (or `--views`, or the first `--max-views`) under every row at each `--scale` times the row's configured samples
+(`insertion_scoring.row_spp`: `scoring.spp`, `scoring.row_spp`), with the stage's scoring layer and seeds
+(`insertion_scoring.score_view`), and reports per row and case class the mean PSNR at each scale and, for
+each scale s with 4s also measured, the mean paired change PSNR(4s) - PSNR(s) with a 95 % bootstrap
+interval over views. A row is converged at s when that change is within `--tolerance` dB (0.1) in every
+class; the stage's configuration is converged when every row is at scale 1.
 
 The `edit` configuration is composed from conf/ with `--override` on top. Needs the trained exports and
 `synthesize`'s cases (`dvc repro train_lighting`). Writes reports/bench/scoring_convergence.json (or
-`--out`) and a PNG beside it (PSNR against spp, one panel per class).
+`--out`) and a PNG beside it (PSNR against the scale, one panel per class).
 """
 
 from __future__ import annotations
@@ -30,21 +30,32 @@ from pipeline.systems.insertion_scoring import ROWS, case_group
 
 
 def measure(
-    cfg, spps: list[int], rows: tuple = ROWS, max_views: int | None = None, progress: bool = True
+    cfg,
+    scales: list[int],
+    rows: tuple = ROWS,
+    max_views: int | None = None,
+    progress: bool = True,
+    view_ids: list[str] | None = None,
 ) -> list[dict]:
-    """One record per case: {view, class, psnr: {spp: {row: dB}}}, every row rendered at every count with
-    the same seeds (the stage's)."""
+    """One record per case: {view, class, psnr: {scale: {row: dB}}}, every row rendered at each `scale`
+    times its configured samples per pixel (`insertion_scoring.row_spp`) with the same seeds (the stage's)."""
     from pipeline.systems import insertion_scoring
 
     shared = insertion_scoring.stage_setup(cfg)
-    layers = {n: insertion_scoring.scoring_layer(cfg, n) for n in spps}
-    views = shared["views"][:max_views] if max_views else shared["views"]
+    layers = {n: insertion_scoring.scoring_layers(cfg, n) for n in scales}
+    views = shared["views"]
+    if view_ids:
+        unknown = sorted(set(view_ids) - {f"{scene}/{view}" for scene, view in views})
+        if unknown:
+            raise ValueError(f"--views {unknown}: not among the {cfg.split} views with cases")
+        views = [(scene, view) for scene, view in views if f"{scene}/{view}" in view_ids]
+    views = views[:max_views] if max_views else views
     records = []
     for scene, view in tqdm(views, desc="scoring convergence", unit="view", disable=not progress):
         ctx, cases = insertion_scoring.view_context(shared, scene, view, cfg, oracle="oracle" in rows)
         per_case = [{"view": ctx["id"], "class": case_group(c.kind, c.label), "psnr": {}} for c in cases]
         for n, layer in layers.items():
-            scored = insertion_scoring.score_view({**ctx, "layer": layer}, cases, cfg, rows)
+            scored = insertion_scoring.score_view({**ctx, "layers": layer}, cases, cfg, rows)
             for rec, res in zip(per_case, scored, strict=True):
                 rec["psnr"][n] = {row: res["rows"][row]["psnr"] for row in rows}
         records += per_case
@@ -53,20 +64,20 @@ def measure(
     return records
 
 
-def summarise(records: list[dict], spps: list[int], rows: tuple, tolerance: float, resamples: int = 2000) -> dict:
-    """Per class (and `all`) and row: mean PSNR per count, and the paired change to 4x each count that has
-    one, with its bootstrap interval over views; `converged_spp`: per row, the smallest count whose change
+def summarise(records: list[dict], scales: list[int], rows: tuple, tolerance: float, resamples: int = 2000) -> dict:
+    """Per class (and `all`) and row: mean PSNR per scale, and the paired change to 4x each scale that has
+    one, with its bootstrap interval over views; `converged_scale`: per row, the smallest scale whose change
     to 4x is within `tolerance` in every class (None if none is)."""
     classes = sorted({r["class"] for r in records})
-    out: dict = {"classes": {}, "converged_spp": {}}
+    out: dict = {"classes": {}, "converged_scale": {}}
     for label in [*classes, "all"]:
         rs = [r for r in records if label in ("all", r["class"])]
         entry = {"cases": len(rs), "rows": {}}
         for row in rows:
-            means = {str(n): float(np.mean([r["psnr"][n][row] for r in rs])) for n in spps}
+            means = {str(n): float(np.mean([r["psnr"][n][row] for r in rs])) for n in scales}
             changes = {}
-            for n in spps:
-                if 4 * n in spps:
+            for n in scales:
+                if 4 * n in scales:
                     diff = [r["psnr"][4 * n][row] - r["psnr"][n][row] for r in rs]
                     ci = paired_bootstrap(diff, resamples, 0, groups=[r["view"] for r in rs])
                     changes[str(n)] = {"diff": ci["diff"], "lo": ci["lo"], "hi": ci["hi"]}
@@ -75,11 +86,37 @@ def summarise(records: list[dict], spps: list[int], rows: tuple, tolerance: floa
     for row in rows:
         ok = [
             n
-            for n in spps
-            if 4 * n in spps
+            for n in scales
+            if 4 * n in scales
             and all(abs(out["classes"][c]["rows"][row]["change_at_4x"][str(n)]["diff"]) <= tolerance for c in classes)
         ]
-        out["converged_spp"][row] = min(ok) if ok else None
+        out["converged_scale"][row] = min(ok) if ok else None
+    return out
+
+
+def headline(summary: dict, spp: dict[str, int], tolerance: float) -> list[dict]:
+    """One row per scored row: its configured spp, the paired change at 4x over all cases (dB, with the
+    interval), the largest change of any class, and whether every class is within `tolerance`."""
+    out = []
+    for row, n in spp.items():
+        change = summary["classes"]["all"]["rows"][row]["change_at_4x"].get("1")
+        if change is None:
+            continue
+        worst = max(
+            (abs(c["rows"][row]["change_at_4x"]["1"]["diff"]) for k, c in summary["classes"].items() if k != "all"),
+            default=float("nan"),
+        )
+        out.append(
+            {
+                "row": row,
+                "spp": n,
+                "change at 4x, all cases (dB)": change["diff"],
+                "lo": change["lo"],
+                "hi": change["hi"],
+                "largest class change (dB)": worst,
+                "converged": "yes" if worst <= tolerance else "no",
+            }
+        )
     return out
 
 
@@ -87,38 +124,51 @@ def plot(report: dict, path: Path) -> None:
     labels = list(report["classes"])
     fig = Figure(figsize=(3.0 * len(labels), 3.2))
     axes = fig.subplots(1, len(labels), squeeze=False)[0]
-    spps = report["spp"]
+    scales = report["scales"]
     for ax, label in zip(axes, labels, strict=True):
         entry = report["classes"][label]
         for row, r in entry["rows"].items():
-            ax.plot(spps, [r["mean_psnr"][str(n)] for n in spps], "o-", ms=3, label=row)
-        ax.axvline(report["configured_spp"], color="0.6", lw=0.8, ls=":")
+            ax.plot(scales, [r["mean_psnr"][str(n)] for n in scales], "o-", ms=3, label=row)
         ax.set_xscale("log", base=2)
-        ax.set_xticks(spps)
-        ax.set_xticklabels([str(n) for n in spps], fontsize=6)
-        ax.set_xlabel("samples per pixel (every row)")
+        ax.set_xticks(scales)
+        ax.set_xticklabels([f"{n}x" for n in scales], fontsize=6)
+        ax.set_xlabel("samples (x the row's configured)", fontsize=7)
         ax.set_title(f"{label} ({entry['cases']} cases)", fontsize=9)
     axes[0].set_ylabel("mean PSNR (dB)")
     axes[0].legend(fontsize=6)
-    fig.suptitle("insertion and editing PSNR against samples per pixel (dotted: scoring.spp)", fontsize=9)
+    spp = ", ".join(f"{row} {n}" for row, n in report["row_spp"].items())
+    fig.suptitle(f"insertion and editing PSNR against samples (configured spp: {spp})", fontsize=8)
     fig.tight_layout()
     fig.savefig(path, dpi=120)
 
 
-def run(overrides: list[str], spps: list[int], tolerance: float, max_views: int | None, progress: bool = True) -> dict:
+def run(
+    overrides: list[str],
+    scales: list[int],
+    tolerance: float,
+    max_views: int | None,
+    progress: bool = True,
+    view_ids: list[str] | None = None,
+) -> dict:
     from pipeline.bench.common import compose
+    from pipeline.systems.insertion_scoring import row_spp
 
-    if sorted(set(spps)) != list(spps) or not spps or spps[0] < 1:
-        raise ValueError(f"--spp {spps}: give increasing positive counts")
+    if sorted(set(scales)) != list(scales) or not scales or scales[0] < 1:
+        raise ValueError(f"--scale {scales}: give increasing positive factors")
     cfg = compose("edit", overrides)
-    records = measure(cfg, spps, ROWS, max_views, progress)
-    summary = summarise(records, spps, ROWS, tolerance)
+    spp = {row: row_spp(cfg, row) for row in ROWS}
+    records = measure(cfg, scales, ROWS, max_views, progress, view_ids)
+    summary = summarise(records, scales, ROWS, tolerance)
     return {
-        "summary": {"smallest converged spp per row (change at 4x within tolerance)": summary["converged_spp"]},
-        "configured_spp": int(cfg.scoring.spp),
+        "summary": {"each row at its configured samples per pixel and at 4x them": headline(summary, spp, tolerance)},
+        "row_spp": spp,
+        "scoring_layer": str(cfg.scoring.layer),
+        "guide": bool(cfg.scoring.guide),
+        "oracle_paths": int(cfg.oracle.paths),
         "tolerance_db": tolerance,
-        "spp": list(spps),
+        "scales": list(scales),
         "views": len({r["view"] for r in records}),
+        "view_ids": sorted({r["view"] for r in records}),
         "light_path": str(cfg.light_path),
         "material_path": str(cfg.material_path),
         "split": str(cfg.split),
@@ -128,21 +178,22 @@ def run(overrides: list[str], spps: list[int], tolerance: float, max_views: int 
 
 def main(argv=None) -> None:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    p.add_argument("--spp", type=int, nargs="+", default=[16, 64, 256, 1024])
+    p.add_argument("--scale", type=int, nargs="+", default=[1, 4], help="factors of every row's configured spp")
     p.add_argument("--tolerance", type=float, default=0.1, help="dB a converged row may move at 4x the samples")
     p.add_argument("--max-views", type=int, default=None, help="the first N test views only")
+    p.add_argument("--views", nargs="*", default=None, help="these test views only (scene/view ids)")
     p.add_argument("--out", default="reports/bench/scoring_convergence.json", help="JSON to write (PNG beside it)")
     p.add_argument("--override", nargs="*", default=[], help="more `edit` config overrides (light_path=...)")
     a = p.parse_args(argv)
     try:
-        report = run(list(a.override), list(a.spp), a.tolerance, a.max_views)
+        report = run(list(a.override), list(a.scale), a.tolerance, a.max_views, view_ids=a.views)
     except ValueError as exc:
         p.error(str(exc))
     out = Path(a.out)
     write_report("scoring_convergence", report, path=out)
     plot(report, out.with_suffix(".png"))
-    for row, n in report["converged_spp"].items():
-        print(f"{row:22s} converged at {n} spp" if n else f"{row:22s} not converged at any measured count")
+    for row, n in report["converged_scale"].items():
+        print(f"{row:22s} converged at {n}x its spp" if n else f"{row:22s} not converged at any measured scale")
     print(out)
 
 

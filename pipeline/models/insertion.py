@@ -70,17 +70,21 @@ def composite_gbuffer(
 
 
 def render_case(
-    layer: MCRenderLayer,
+    layer,
     shading: dict,
     fov_x: float,
     pixels: torch.Tensor,
     radiance: PointRadianceFn,
     seed: int,
+    guide=None,
 ) -> torch.Tensor:
-    """(M, 3) HDR radiance of `pixels` of the G-buffers `shading` under `radiance`. Every call with the same
-    seed draws the same sample directions wherever the shading G-buffers agree (paired comparisons)."""
+    """(M, 3) HDR radiance of `pixels` of the G-buffers `shading` under `radiance`, rendered by `layer` (an
+    `MCRenderLayer`, or a `ScoringLayer` that may sample `guide`, an `ops.guide.SphereGuide`, beside the
+    BRDF). Every unguided call with the same seed and layer draws the same sample directions wherever the
+    shading G-buffers agree (paired comparisons)."""
     generator = torch.Generator().manual_seed(int(seed))
-    rgb, _ = layer.render_pixels(shading, fov_x, pixels, radiance, generator)
+    extra = {} if guide is None else {"guide": guide}  # only the scoring layer takes a guide
+    rgb, _ = layer.render_pixels(shading, fov_x, pixels, radiance, generator, **extra)
     return rgb
 
 

@@ -188,6 +188,9 @@ def lighting_extras(
             f"render={score_cfg.render.estimator}",  # the layer the preset is scored with
             f"bootstrap={int(cfg.bootstrap)}",
             f"scoring.spp={int(cfg.insertion_spp)}",
+            # Sobol samples and the light guide need BRDF importance sampling: another estimator is scored
+            # with its own render layer, as the preset renders
+            f"scoring.layer={'converged' if score_cfg.render.estimator == 'importance' else 'render'}",
         ],
     )
     rows = (

@@ -6,8 +6,8 @@ rows (LightNet, the baselines, the oracle) and how each is rendered and scored:
 
 Writes `reports/edit/metrics.json` (means per material class and edit kind; LightNet minus every other
 row with a paired bootstrap interval that resamples views, whose cases share a photo and predictions,
-and a verdict: +1 better, -1 worse, 0 no difference or a single view; `scoring_spp`, every row's samples
-per pixel), `cases.csv` (every case and row), `timings.json`, `insertion.png` and `editing.png` (figure
+and a verdict: +1 better, -1 worse, 0 no difference or a single view; `scoring_spp/<row>`, each row's
+samples per pixel), `cases.csv` (every case and row), `timings.json`, `insertion.png` and `editing.png` (figure
 grids), all also to MLflow.
 """
 
@@ -21,7 +21,15 @@ from omegaconf import DictConfig
 from tqdm import tqdm
 
 from pipeline.data import interiorverse as iv
-from pipeline.systems.insertion_scoring import ROWS, figure_panels, score_view, stage_setup, summarise, view_context
+from pipeline.systems.insertion_scoring import (
+    ROWS,
+    figure_panels,
+    row_spp,
+    score_view,
+    stage_setup,
+    summarise,
+    view_context,
+)
 from pipeline.tracking import publish, stage_run
 from pipeline.tracking.figures import insertion_grid
 
@@ -53,7 +61,7 @@ def run(cfg: DictConfig) -> dict[str, float]:
         if not records:
             raise iv.DatasetError(f"{shared['root']}: the {cfg.split} views' case files list no case")
         metrics = summarise(records, int(cfg.bootstrap), int(cfg.seed))
-        metrics["scoring_spp"] = float(cfg.scoring.spp)  # every row's samples per pixel
+        metrics.update({f"scoring_spp/{row}": float(row_spp(cfg, row)) for row in ROWS})
         report.mkdir(parents=True, exist_ok=True)
         with open(report / "cases.csv", "w", newline="") as fh:
             writer = csv.DictWriter(fh, fieldnames=list(records[0]))

@@ -3,11 +3,14 @@ is scored on the same cases) and the benches: the per-view context, every row's 
 the summary with paired bootstrap intervals, and the figure panels. What the stage writes with them:
 `pipeline.runs.edit`.
 
-Rows, each rendering the same pixels with the same samples per pixel (`scoring.spp`, one layer for all,
-so every row carries the same Monte Carlo noise, which penalises sharp light; whether the count is
-converged is measured by `bench.scoring_convergence`) and one seed per case (its own per view; rows on
-the same shading G-buffers draw the same directions: every row of an object case, and the rows on
-predicted G-buffers of an edit and the rows on ground-truth ones):
+Rows are scored at converged Monte Carlo noise (noise lowers the PSNR of a sharp light more than a blurred
+one): each row renders the same pixels at its own samples per pixel (`row_spp`: `scoring.spp`, or more
+for the sharp rows whose light is cheap to query), every pixel's samples a randomly shifted scrambled
+Sobol sequence (`scoring.layer: converged`, `models.scoring_layer`), and the sharp rows also sample the
+nearest probe's map as a light guide (`scoring.guide`, `ops.guide`); `bench.scoring_convergence`
+measures each row's change at 4x its samples. One seed per case (its own per view; rows on the same
+shading G-buffers at the same count draw the same directions: the LightNet and constant rows of an
+object case):
 - `lightnet`: LightNet on the photo and the frozen MaterialNet's G-buffers (the method);
 - `lightnet_gt_gbuffers`: LightNet on the ground-truth G-buffers (what a perfect MaterialNet would give);
 - `constant`, `scaled_constant`: the content-blind lights of `train_lighting` (mean training radiance,
@@ -57,11 +60,14 @@ from pipeline.models.insertion import (
 from pipeline.models.light_net import load_light_export
 from pipeline.models.material_net import load_material_export
 from pipeline.models.render_layer import MCRenderLayer
+from pipeline.models.scoring_layer import ScoringLayer
 from pipeline.ops.camera import backproject
 from pipeline.ops.envmap import sphere_lookup
+from pipeline.ops.guide import SphereGuide
 from pipeline.systems.lighting_baselines import constant_light, mean_training_radiance, scaled_constant_light
 
 ROWS = ("lightnet", "lightnet_gt_gbuffers", "constant", "scaled_constant", "nearest_probe", "oracle")
+GUIDED = ("nearest_probe", "oracle")  # rows whose light is sharp and cheap to query: sampled with a light guide
 FIGURE_ROWS = ("lightnet", "lightnet_gt_gbuffers", "scaled_constant", "nearest_probe", "oracle")
 
 
@@ -108,6 +114,7 @@ def score_view(ctx: dict, cases: list[case_io.Case], cfg: DictConfig, rows: tupl
         centre = case_centre(case, gt, fov, ctx["w2v"])
         probe = int(torch.argmin((free.position - centre).norm(dim=-1)))
         probe_map = free.radiance[probe : probe + 1]
+        guide = probe_guide(probe_map) if cfg.scoring.guide and cfg.scoring.layer == "converged" else None
         rows_light = {
             **lights,
             "nearest_probe": lambda idx, o, wi, b, m=probe_map: sphere_lookup(m, torch.zeros_like(b), wi),
@@ -117,15 +124,29 @@ def score_view(ctx: dict, cases: list[case_io.Case], cfg: DictConfig, rows: tupl
         seed_of_case = case_seed(seed, len(out))
         for row in rows:
             shading = shade_gt if row in ("lightnet_gt_gbuffers", "oracle") else shade_pred
-            layer = ctx["layer"]
+            layer = ctx["layers"][row]
             t0 = time.perf_counter()
             with torch.no_grad():
-                renders[row] = render_case(layer, shading, fov, case.pixel, rows_light[row], seed_of_case)
+                renders[row] = render_case(
+                    layer,
+                    shading,
+                    fov,
+                    case.pixel,
+                    rows_light[row],
+                    seed_of_case,
+                    guide if row in GUIDED else None,
+                )
             seconds[row] = time.perf_counter() - t0
             scores[row] = case_scores(renders[row], case.radiance, photo, case.pixel, float(scale))
         scores["ground_truth"] = {"noise_floor_psnr": noise_floor_psnr(case.radiance, case.stderr, float(scale))}
         out.append({"case": case, "rows": scores, "renders": renders, "seconds": seconds})
     return out
+
+
+def probe_guide(probe_map: torch.Tensor) -> SphereGuide | None:
+    """The light guide of the sharp rows: the nearest ground-truth probe's map (the nearest-probe row's
+    own light, and close to the oracle's light at the case), or None if the map holds no energy."""
+    return SphereGuide(probe_map) if float(probe_map.sum()) > 0 else None
 
 
 def case_group(kind: str, label: str) -> str:
@@ -203,14 +224,48 @@ def view_seed(seed: int, view_id: str) -> int:
     return (int(seed) * 1_000_003 + zlib.crc32(view_id.encode())) & 0x7FFFFFFF
 
 
-def scoring_layer(cfg: DictConfig, spp: int | None = None) -> MCRenderLayer:
-    """The one render layer every row renders with: the configured estimator at `scoring.spp` (or `spp`)
-    samples per pixel."""
-    render = OmegaConf.to_container(cfg.render, resolve=True)
+def row_spp(cfg: DictConfig, row: str) -> int:
+    """Samples per pixel of `row`: its entry in `scoring.row_spp` (the rows whose light is sharp and cheap
+    to query converge only at more samples), else `scoring.spp`. The oracle traces each sample ray with
+    `oracle.paths` Mitsuba paths."""
+    extra = OmegaConf.to_container(cfg.scoring.get("row_spp") or {}, resolve=True)
+    unknown = sorted(set(extra) - set(ROWS))
+    if unknown:
+        raise ValueError(f"scoring.row_spp: unknown rows {unknown}; the rows are {ROWS}")
+    key = f"scoring.row_spp.{row}" if row in extra else "scoring.spp"
+    n = int(extra.get(row, cfg.scoring.spp))
+    if n < 1:
+        raise ValueError(f"{key}={n}: at least 1 sample per pixel")
+    return n
+
+
+LAYERS = ("converged", "render")
+
+
+def scoring_layer(cfg: DictConfig, spp: int | None = None) -> MCRenderLayer | ScoringLayer:
+    """A render layer for scoring at `scoring.spp` (or `spp`) samples per pixel: `scoring.layer` converged
+    (`ScoringLayer`: Sobol samples and the light guide, BRDF importance sampling) or render (the
+    configured `MCRenderLayer`, independent samples: how an estimator other than importance is scored)."""
     n = int(cfg.scoring.spp if spp is None else spp)
     if n < 1:
         raise ValueError(f"scoring.spp={n}: at least 1 sample per pixel")
+    kind = str(cfg.scoring.layer)
+    if kind not in LAYERS:
+        raise ValueError(f"scoring.layer={kind!r}: choose one of {LAYERS}")
+    render = OmegaConf.to_container(cfg.render, resolve=True)
+    if kind == "converged":
+        if render["estimator"] != "importance":
+            raise ValueError(
+                f"scoring.layer=converged samples the BRDF by importance; render.estimator={render['estimator']!r} "
+                "is scored with scoring.layer=render"
+            )
+        return ScoringLayer(n, int(render.get("chunk", 1 << 16)))
     return MCRenderLayer.from_config({**render, "spp": n})
+
+
+def scoring_layers(cfg: DictConfig, scale: int = 1) -> dict[str, MCRenderLayer]:
+    """Every row's render layer ({row: layer}), at `row_spp` x `scale` samples per pixel."""
+    return {row: scoring_layer(cfg, row_spp(cfg, row) * int(scale)) for row in ROWS}
 
 
 def stage_setup(cfg: DictConfig) -> dict:
@@ -231,7 +286,7 @@ def stage_setup(cfg: DictConfig) -> dict:
         "material": (material_net, material_meta),
         "net": net.eval(),
         "constants": mean_training_radiance(DataLoader(train, batch_size=16, collate_fn=collate_views)),
-        "layer": scoring_layer(cfg),
+        "layers": scoring_layers(cfg),
         "views": views,
         "max_depth": int(_dataset_record(root)["config"]["max_depth"]),
     }
@@ -267,7 +322,7 @@ def view_context(
         "id": view_id,
         "seed": seed,
         "view": prepared,
-        "layer": shared["layer"],
+        "layers": shared["layers"],
         "constants": shared["constants"],
         "light": light,
         "w2v": np.asarray(camera["world_from_view"]),

@@ -571,7 +571,8 @@ def section_findings(facts: dict, claim_counts: dict[str, int] | None) -> list[s
         )
     m = facts.get("edit")
     if m:
-        spp = m.get("scoring_spp")
+        spp = {row: int(v) for key, v in m.items() if key.startswith("scoring_spp/") for row in [key.split("/")[1]]}
+        at = ", ".join(f"{row} {n}" for row, n in spp.items() if row in ("lightnet", "nearest_probe", "oracle"))
         for group in ("mirror", "glossy", "diffuse", "all"):
             cells = []
             for who in ("nearest_probe", "scaled_constant"):
@@ -585,7 +586,11 @@ def section_findings(facts: dict, claim_counts: dict[str, int] | None) -> list[s
                     f"- Insertion, {group} objects: LightNet {num(m.get(f'insert/{group}/lightnet/psnr'))} dB "
                     f"(oracle {num(m.get(f'insert/{group}/oracle/psnr'))} dB); "
                     + "; ".join(cells)
-                    + (f"; every row at {int(spp)} spp" if spp else "; rows scored at unequal samples")
+                    + (
+                        f"; samples per pixel {at} (their convergence: `reports/bench/scoring_convergence.json`)"
+                        if spp
+                        else "; rows scored at unequal noise"
+                    )
                     + ". `reports/edit/metrics.json`."
                 )
     if claim_counts:
