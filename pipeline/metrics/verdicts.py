@@ -22,8 +22,12 @@ Across the claims of one report the p-values are adjusted by Holm's step-down pr
 of any false verdict over the family is at most `alpha`.
 
 Verdicts: `supported` (the difference is real and in the direction the claim predicts), `contradicted`
-(real, the other way), `inconclusive` (not shown either way at the family's level), `not testable`
-(fewer than two seeds with data, or the preset cannot run here).
+(real, the other way), `inconclusive` (not shown either way at the family's level: read it as "no
+effect larger than the minimal detectable effect", `minimal_detectable_effect`, not as "no effect"),
+`not testable` (fewer than two seeds with data, every seed the same difference so that the seeds show no
+spread to test against, or the preset cannot run here), `diverged` (a seed's run diverged: the method
+failed a stability check, and judging it on the surviving seeds would hide that). Untestable and
+diverged claims are not in the Holm family.
 """
 
 from __future__ import annotations
@@ -33,7 +37,8 @@ import math
 import numpy as np
 from scipy import integrate, stats
 
-VERDICTS = ("supported", "contradicted", "inconclusive", "not testable")
+VERDICTS = ("supported", "contradicted", "inconclusive", "not testable", "diverged")
+POWER_TARGET = 0.8  # the power at which `minimal_detectable_effect` is stated
 
 
 def _seed_means(diffs) -> np.ndarray:
@@ -63,8 +68,8 @@ def seed_effect(diffs, level: float = 0.95) -> dict[str, float]:
         return {**out, "lo": float("nan"), "hi": float("nan"), "p": float("nan"), "se": float("nan")}
     se = float(means.std(ddof=1) / math.sqrt(S))
     q = float(stats.t.ppf(0.5 + level / 2, S - 1))
-    if se == 0.0:  # every seed the same mean: no spread to test against
-        p = 1.0 if out["diff"] == 0.0 else 0.0
+    if se == 0.0:  # every seed the same mean: the seeds varied nothing, so there is no spread to test against
+        p = float("nan")
     else:
         p = float(2 * stats.t.sf(abs(out["diff"]) / se, S - 1))
     return {**out, "lo": out["diff"] - q * se, "hi": out["diff"] + q * se, "p": p, "se": se}
@@ -88,6 +93,8 @@ def verdict(effect: dict, expected_sign: int, p_adjusted: float, alpha: float = 
     the metric's scale (+1 or -1) and its Holm-adjusted p-value."""
     if expected_sign not in (1, -1):
         raise ValueError(f"verdict: expected_sign must be +1 or -1, got {expected_sign!r}")
+    if effect.get("diverged", 0) > 0:
+        return "diverged"
     if effect["seeds"] < 2 or not math.isfinite(p_adjusted):
         return "not testable"
     if p_adjusted > alpha:
@@ -115,15 +122,45 @@ def power(effect_size: float, seed_sd: float, seeds: int, alpha: float = 0.05) -
     return float(integrate.quad(rejects, 0.0, math.inf, limit=200)[0])
 
 
+def minimal_detectable_effect(seed_sd: float, seeds: int, alpha: float = 0.05, target: float = POWER_TARGET) -> float:
+    """The smallest true mean difference that the two-sided t test on `seeds` seed means (standard deviation
+    `seed_sd`) detects at level `alpha` with probability `target`: `power` solved for the effect (NaN
+    under two seeds)."""
+    if seeds < 2:
+        return float("nan")
+    if not 0 < target < 1:
+        raise ValueError(f"minimal_detectable_effect: target power must be in (0, 1), got {target}")
+    lo, hi = 0.0, seed_sd
+    while power(hi, seed_sd, seeds, alpha) < target:  # power grows with the effect: bracket, then bisect
+        lo, hi = hi, 2 * hi
+    for _ in range(60):
+        mid = (lo + hi) / 2
+        lo, hi = (mid, hi) if power(mid, seed_sd, seeds, alpha) < target else (lo, mid)
+    return hi
+
+
+def seeds_needed(
+    effect_size: float, seed_sd: float, alpha: float = 0.05, target: float = POWER_TARGET, most: int = 64
+) -> int | None:
+    """The fewest seeds (at least 2) whose t test detects `effect_size` at level `alpha` with probability
+    `target` when seed means spread by `seed_sd`; None if even `most` seeds do not."""
+    for seeds in range(2, most + 1):
+        if power(effect_size, seed_sd, seeds, alpha) >= target:
+            return seeds
+    return None
+
+
 def decide(claims: dict[str, dict], alpha: float = 0.05, level: float = 0.95) -> dict[str, dict]:
     """Verdicts of a family of claims. claims: {name: {"diffs": per-seed per-view differences (empty when
-    the preset is unavailable), "expected_sign": +1 | -1}}. Returns {name: seed_effect's fields +
-    "p_holm", "verdict"}; the family is every claim with at least two seeds."""
+    the preset is unavailable), "expected_sign": +1 | -1, "diverged": seeds whose run diverged (0 if
+    absent)}}. Returns {name: seed_effect's fields + "diverged", "p_holm", "verdict"}; the family is every
+    claim with at least two seeds, some spread between them and no diverged seed."""
     effects = {}
     for name, c in claims.items():
         diffs = c.get("diffs") or []
-        effects[name] = seed_effect(diffs, level) if diffs else {"diff": float("nan"), "seeds": 0.0, "p": float("nan")}
-    adjusted = holm({name: e["p"] for name, e in effects.items()})
+        e = seed_effect(diffs, level) if diffs else {"diff": float("nan"), "seeds": 0.0, "p": float("nan")}
+        effects[name] = {**e, "diverged": float(c.get("diverged", 0))}
+    adjusted = holm({name: e["p"] if not e["diverged"] else float("nan") for name, e in effects.items()})
     return {
         name: {
             **e,

@@ -28,7 +28,7 @@ from pathlib import Path
 import numpy as np
 from omegaconf import DictConfig, OmegaConf
 
-from pipeline.metrics.verdicts import decide, power, seed_effect
+from pipeline.metrics.verdicts import decide, minimal_detectable_effect, power, seed_effect, seeds_needed
 from pipeline.tracking import publish, stage_run
 from pipeline.tracking.figures import pareto_figure
 from pipeline.tracking.results_page import render as render_results
@@ -88,16 +88,20 @@ def compare(runs: dict, preset: str, reference: str, key: str) -> dict:
     their t interval over seeds (`metrics.verdicts.seed_effect`): {"seeds", "diffs", "diff", "lo", "hi",
     "p", "se", "reference_mean"}; no seeds with both values: seeds 0."""
     seeds = sorted(set(runs.get(preset, {})) & set(runs.get(reference, {})))
-    diffs, ref = [], []
+    diffs, ref, diverged = [], [], 0
     for s in seeds:
         a, b = runs[preset][s]["metrics"].get(key), runs[reference][s]["metrics"].get(key)
-        if a is not None and b is not None and math.isfinite(a) and math.isfinite(b):
-            diffs.append(a - b)
-            ref.append(b)
+        if a is None or b is None:
+            continue
+        if not (math.isfinite(a) and math.isfinite(b)) or runs[preset][s]["metrics"].get("health/diverged", 0) > 0:
+            diverged += 1  # counted, never dropped: a method that sometimes diverges is not judged on survivors
+            continue
+        diffs.append(a - b)
+        ref.append(b)
     if not diffs:
-        return {"seeds": 0, "diffs": [], "diff": float("nan"), "p": float("nan")}
+        return {"seeds": 0, "diffs": [], "diff": float("nan"), "p": float("nan"), "diverged": diverged}
     effect = seed_effect([np.array([d]) for d in diffs])
-    return {**effect, "seeds": len(diffs), "diffs": diffs, "reference_mean": float(np.mean(ref))}
+    return {**effect, "seeds": len(diffs), "diffs": diffs, "reference_mean": float(np.mean(ref)), "diverged": diverged}
 
 
 def expected_sign(expect: dict) -> int:
@@ -125,7 +129,10 @@ def claim_verdicts(runs: dict, alpha: float = 0.05) -> dict[tuple[str, str], dic
     "effect_size", "power"}. A preset that did not run here (unavailable) or has fewer than two seeds is
     `not testable`. `power`: the probability of a verdict at the family's strictest level (alpha / number
     of testable hypotheses) if the true difference were `effect_size` (0.5 dB on a PSNR, else 5 % of the
-    reference's mean) and the seeds spread as observed."""
+    reference's mean) and the seeds spread as observed; `mde`: the minimal detectable effect at power 0.8
+    at that level and spread; `seeds_needed`: the seeds that would give power 0.8 at `effect_size` (NaN:
+    more than 64); all three post hoc, from the observed spread. A seed whose run diverged is
+    counted (`diverged`) and makes the claim `diverged`, never dropped."""
     claims, found = {}, {}
     for name, seeds in runs.items():
         first = seeds[next(iter(seeds))]["preset"]
@@ -134,18 +141,32 @@ def claim_verdicts(runs: dict, alpha: float = 0.05) -> dict[tuple[str, str], dic
             c = {"seeds": 0, "diffs": []} if unavailable else compare(runs, name, first["reference"], e["metric"])
             key = f"{name}:{e['metric']}"
             found[key] = (name, c, e)
-            claims[key] = {"diffs": [np.array([d]) for d in c["diffs"]], "expected_sign": expected_sign(e)}
+            claims[key] = {
+                "diffs": [np.array([d]) for d in c["diffs"]],
+                "expected_sign": expected_sign(e),
+                "diverged": c.get("diverged", 0),
+            }
     decided = decide(claims, alpha)
-    testable = sum(1 for d in decided.values() if d["seeds"] >= 2)
+    testable = sum(1 for d in decided.values() if math.isfinite(d["p_holm"]))
     out = {}
     for key, d in decided.items():
         name, c, e = found[key]
         size = POWER_DB if e["metric"].endswith("psnr") else POWER_SHARE * abs(c.get("reference_mean", float("nan")))
         sd = d.get("se", float("nan")) * math.sqrt(d["seeds"]) if d["seeds"] >= 2 else float("nan")
-        pw = (
-            power(size, sd, int(d["seeds"]), alpha / max(testable, 1)) if math.isfinite(sd) and sd > 0 else float("nan")
-        )
-        out[(name, e["metric"])] = {**c, **d, "metric": e["metric"], "effect_size": size, "power": pw}
+        level = alpha / max(testable, 1)
+        spread_ok = math.isfinite(sd) and sd > 0
+        pw = power(size, sd, int(d["seeds"]), level) if spread_ok else float("nan")
+        mde = minimal_detectable_effect(sd, int(d["seeds"]), level) if spread_ok else float("nan")
+        needed = seeds_needed(size, sd, level) if spread_ok and math.isfinite(size) else None
+        out[(name, e["metric"])] = {
+            **c,
+            **d,
+            "metric": e["metric"],
+            "effect_size": size,
+            "power": pw,
+            "mde": mde,
+            "seeds_needed": float("nan") if needed is None else float(needed),
+        }
     return out
 
 
@@ -158,6 +179,10 @@ def _fmt(mean: float, half: float) -> str:
 
 def _p(value: float) -> str:
     return "n/a" if not math.isfinite(value) else f"{value:.2g}"
+
+
+def _seeds(n: float) -> str:
+    return "n/a" if not math.isfinite(n) else f"{int(n)}"
 
 
 def _interval(c: dict) -> str:
@@ -205,6 +230,20 @@ def table(runs: dict, stage: str, columns: list) -> tuple[list[str], dict[str, f
     return lines, numbers
 
 
+def verdict_text(v: dict) -> str:
+    """A claim's verdict as the table reads it: an inconclusive claim bounds the effect by its minimal
+    detectable effect (it does not say there is none); a diverged one counts its diverged seeds; a claim
+    whose seeds all gave the same difference says why it is not testable."""
+    verdict = v["verdict"]
+    if verdict == "inconclusive" and math.isfinite(v.get("mde", float("nan"))):
+        return f"inconclusive: no effect larger than {v['mde']:.3g} detected"
+    if verdict == "diverged":
+        return f"diverged ({int(v['diverged'])} of {int(v['diverged'] + v['seeds'])} seeds): unstable"
+    if verdict == "not testable" and v["seeds"] >= 2 and v.get("se") == 0.0:
+        return "not testable: every seed the same difference"
+    return verdict
+
+
 def claims_table(runs: dict) -> tuple[list[str], dict[str, float]]:
     """One row per paper claim and metric (`claim_verdicts`, one Holm family): the claim and its source,
     the preset, the metric, the preset minus its reference with the 95 % t interval over seeds and each
@@ -212,8 +251,8 @@ def claims_table(runs: dict) -> tuple[list[str], dict[str, float]]:
     verdicts = claim_verdicts(runs)
     lines = [
         "| paper claim | preset | metric | preset - reference (95 % t interval over seeds) | verdict | Holm p "
-        "| power at effect |",
-        "|---|---|---|---|---|---|---|",
+        "| power at effect | minimal detectable effect (power 0.8) | seeds for power 0.8 at effect |",
+        "|---|---|---|---|---|---|---|---|---|",
     ]
     numbers = {}
     for (name, metric), v in sorted(verdicts.items()):
@@ -221,11 +260,11 @@ def claims_table(runs: dict) -> tuple[list[str], dict[str, float]]:
         claim = f"{first['claim']} ({first.get('source', '')})"
         versus = _interval(v) if v["seeds"] else "not run"
         lines.append(
-            f"| {claim} | {name} | {metric} | {versus} | {v['verdict']} | {_p(v['p_holm'])} "
-            f"| {_p(v['power'])} at {v['effect_size']:.3g} |"
+            f"| {claim} | {name} | {metric} | {versus} | {verdict_text(v)} | {_p(v['p_holm'])} "
+            f"| {_p(v['power'])} at {v['effect_size']:.3g} | {_p(v['mde'])} | {_seeds(v['seeds_needed'])} |"
         )
         numbers[f"{name}/vs_reference/{metric}"] = float(v["diff"])
-        for field in ("lo", "hi", "p_holm", "power"):
+        for field in ("lo", "hi", "p_holm", "power", "mde", "seeds_needed", "diverged"):
             numbers[f"{name}/vs_reference/{metric}/{field}"] = float(v.get(field, float("nan")))
     return lines, numbers
 

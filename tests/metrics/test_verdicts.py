@@ -133,6 +133,44 @@ def test_four_outcomes():
     assert set(vd.VERDICTS) >= {v["verdict"] for v in out.values()}
 
 
+def test_zero_spread_and_diverged_seeds_are_not_tested():
+    """Every seed the same difference: the seeds varied nothing, so no test (p NaN), whatever the mean. A
+    claim with a diverged seed is `diverged` and leaves the Holm family."""
+    same = [np.full(5, 0.5), np.full(5, 0.5)]
+    assert math.isnan(vd.seed_effect(same)["p"])
+    up = [np.full(10, 1.0) + s * 0.01 + np.linspace(-0.1, 0.1, 10) for s in range(3)]
+    out = vd.decide(
+        {
+            "same": {"diffs": same, "expected_sign": -1},
+            "diverged": {"diffs": up[:2], "expected_sign": 1, "diverged": 1},
+            "shown": {"diffs": up, "expected_sign": 1},
+        }
+    )
+    assert {k: v["verdict"] for k, v in out.items()} == {
+        "same": "not testable",
+        "diverged": "diverged",
+        "shown": "supported",
+    }
+    assert out["shown"]["p_holm"] == pytest.approx(out["shown"]["p"])  # a family of one: no multiplier
+
+
+@pytest.mark.parametrize("seeds", [3, 5, 10])
+def test_minimal_detectable_effect_is_where_the_power_reaches_the_target(seeds):
+    sd, alpha = 0.3, 0.05 / 4
+    mde = vd.minimal_detectable_effect(sd, seeds, alpha)
+    assert vd.power(mde, sd, seeds, alpha) == pytest.approx(vd.POWER_TARGET, abs=1e-6)
+    assert vd.minimal_detectable_effect(sd, seeds + 1, alpha) < mde  # more seeds, smaller bound
+    rng = np.random.default_rng(seeds)  # and by simulation: t tests at that effect reject 80 % of the time
+    means = rng.normal(mde, sd, size=(4000, seeds))
+    t = means.mean(1) / (means.std(1, ddof=1) / math.sqrt(seeds))
+    rate = float(np.mean(2 * stats.t.sf(np.abs(t), seeds - 1) <= alpha))
+    assert abs(rate - vd.POWER_TARGET) <= 4 * math.sqrt(0.8 * 0.2 / 4000)
+    assert math.isnan(vd.minimal_detectable_effect(sd, 1, alpha))
+    needed = vd.seeds_needed(mde, sd, alpha)  # the seed count that reaches the target at that effect
+    assert needed <= seeds and vd.power(mde, sd, needed, alpha) >= vd.POWER_TARGET
+    assert vd.seeds_needed(1e-6, sd, alpha) is None
+
+
 def test_bad_input_is_refused():
     with pytest.raises(ValueError, match="seed 1: differences hold NaN"):
         vd.seed_effect([np.ones(3), np.array([1.0, np.nan])])

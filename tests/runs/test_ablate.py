@@ -316,8 +316,8 @@ def test_report_verdicts_are_tested_over_seeds_as_one_family(tmp_path):
     key = "test/render_psnr"
     assert v["no_mc", key]["verdict"] == "supported"  # the claim: the reference better, and it is
     assert v["spp_2", key]["verdict"] == "inconclusive"
-    # two seeds exactly +0.5 apart from the reference: no spread, p = 0, yet the claim says worse
-    assert v["ssrt_only", key]["verdict"] == "contradicted"
+    # two seeds exactly +0.5 apart from the reference: the seeds varied nothing, so nothing to test against
+    assert v["ssrt_only", key]["verdict"] == "not testable" and math.isnan(v["ssrt_only", key]["p_holm"])
     assert v["no_mc", key]["p_holm"] >= v["no_mc", key]["p"]  # adjusted over the family of three claims
     assert 0 < v["spp_2", key]["power"] < 1 and v["no_mc", key]["effect_size"] == 0.5
     assert expected_sign({"higher_is_better": False, "holds_if": "reference_better"}) == 1
@@ -325,7 +325,26 @@ def test_report_verdicts_are_tested_over_seeds_as_one_family(tmp_path):
         expected_sign({"higher_is_better": True, "holds_if": ""})
     rows, numbers = claims_table(runs)
     assert any("| no_mc | test/render_psnr |" in r and "| supported |" in r for r in rows)
+    assert any("| spp_2 |" in r and "inconclusive: no effect larger than" in r for r in rows)
+    assert any("| ssrt_only |" in r and "not testable: every seed the same difference" in r for r in rows)
     assert numbers["no_mc/vs_reference/test/render_psnr/hi"] < 0
+    assert v["spp_2", key]["mde"] > v["spp_2", key]["effect_size"]  # power < 0.8 at 0.5 dB: the bound is wider
+    assert v["spp_2", key]["seeds_needed"] > 3  # and more seeds than were run would be needed
+
+
+def test_a_preset_that_diverges_on_a_seed_is_counted_not_judged_on_survivors(tmp_path):
+    from pipeline.runs.report import claim_verdicts, claims_table, read_runs
+
+    values = {("full", s): 20.0 + 0.2 * s for s in range(3)}
+    values.update({("no_mc", s): 19.0 + 0.2 * s + 0.01 * s * s for s in range(3)})  # clearly worse on 3 seeds
+    root = _fake_runs(tmp_path, values)
+    path = root / "no_mc-s2" / "metrics.json"
+    path.write_text(json.dumps({"test/render_psnr": float("nan"), "health/diverged": 1.0}))
+    v = claim_verdicts(read_runs(root))["no_mc", "test/render_psnr"]
+    assert v["verdict"] == "diverged" and v["diverged"] == 1 and v["seeds"] == 2 and math.isnan(v["p_holm"])
+    rows, numbers = claims_table(read_runs(root))
+    assert any("| no_mc |" in r and "diverged (1 of 3 seeds): unstable" in r for r in rows)
+    assert numbers["no_mc/vs_reference/test/render_psnr/diverged"] == 1.0
 
 
 def test_a_claim_with_several_metrics_tests_each_in_the_family(tmp_path):
