@@ -15,6 +15,23 @@ CONF = ROOT / "conf"
 LLVM = "/usr/lib/x86_64-linux-gnu/libLLVM.so.19.1"
 
 
+def _threads_per_worker() -> int | None:
+    """CPU threads for each xdist worker: the cores shared out, at least one (None outside xdist).
+
+    Each worker's PyTorch (and the stage subprocesses it starts) would otherwise run an OpenMP team as
+    wide as the machine; two such teams on two cores spin against each other and made small tensor
+    tests up to 25x slower than alone."""
+    workers = os.environ.get("PYTEST_XDIST_WORKER_COUNT")
+    if not workers:
+        return None
+    return max(1, (os.cpu_count() or 1) // int(workers))
+
+
+if _threads_per_worker() is not None:  # before anything imports torch; inherited by subprocesses
+    os.environ.setdefault("OMP_NUM_THREADS", str(_threads_per_worker()))
+    os.environ.setdefault("MKL_NUM_THREADS", str(_threads_per_worker()))
+
+
 def free_port() -> int:
     """A TCP port on 127.0.0.1 nothing listens on now (for servers a test starts)."""
     import socket
@@ -79,6 +96,10 @@ def _environment(tmp_path_factory, worker_id):
     if os.path.exists(LLVM):
         os.environ.setdefault("DRJIT_LIBLLVM_PATH", LLVM)
     os.environ["DVC_NO_ANALYTICS"] = "1"
+    if _threads_per_worker() is not None:  # in case a plugin imported torch before this file set the env
+        import torch
+
+        torch.set_num_threads(int(os.environ["OMP_NUM_THREADS"]))
     shared = _shared_dir(tmp_path_factory, worker_id)
     uri = f"sqlite:///{shared / 'mlflow.db'}"
     with FileLock(str(shared / "mlflow.lock")):
