@@ -75,6 +75,24 @@ def run_stage_process(stage: str, args: list[str], cwd: Path) -> str:
     return log
 
 
+@pytest.hookimpl(trylast=True)
+def pytest_collection_modifyitems(config, items):
+    """Tag each `xdist_group` test's node id with its group, as `--dist loadgroup` expects.
+
+    pytest-xdist 3.8 writes the tag to `item._nodeid`, which pytest 9 no longer reads (the id lives in
+    `item._id`), so the groups were silently ignored: a group's tests ran on both workers, each building
+    the group's module fixture (the released LightNet, the finetuned models, the DVC project) again."""
+    if not getattr(config.option, "loadgroup", False):  # set on xdist workers under --dist loadgroup
+        return
+    from _pytest.nodeid import coerce_node_id
+
+    for item in items:
+        marks = item.iter_markers("xdist_group")
+        names = sorted({str(m.args[0] if m.args else m.kwargs.get("name", "default")) for m in marks})
+        if names and "@" not in item.nodeid:
+            item._id = coerce_node_id(f"{item.nodeid}@{'_'.join(names)}")
+
+
 def compose_cfg(name: str, overrides: list[str] | None = None):
     """Compose `conf/<name>.yaml` with overrides: the project's one composer (`pipeline.tracking.compose`),
     which registers the `${job_dir:...}` resolver as every stage does."""

@@ -50,7 +50,9 @@ def test_every_table_value_is_what_the_profile_composes(profile):
     configs = {}
     wrong = []
     for row in ROWS:
-        cfg = configs.setdefault(row["stage"], compose_cfg(row["stage"], [f"profile={profile}"]))
+        if row["stage"] not in configs:  # compose each stage once (setdefault would compose on every row)
+            configs[row["stage"]] = compose_cfg(row["stage"], [f"profile={profile}"])
+        cfg = configs[row["stage"]]
         node = OmegaConf.select(cfg, row["key"], default=None)
         actual = OmegaConf.to_container(node, resolve=True) if OmegaConf.is_config(node) else node
         cell = row[profile]
@@ -185,6 +187,10 @@ def test_paper_profile_runs_one_step_of_every_stage_on_micro_data(tmp_path):
                 "batch_size=2",
                 "lighting.pixels=8",
                 "lighting.figure_views=1",
+                "lighting.eval_stride=16",
+                # the untrained network's scores repeat the validation and test passes the stage runs anyway
+                "lighting.validate_before=false",
+                "lighting.test_before=false",
                 "render.eval_spp=16",
             ],
         )
