@@ -22,7 +22,8 @@ A preset that needs something absent here (`preset.requires`, e.g. VGG16 weights
 
 Writes `outputs/ablate/<preset>-s<seed>/` (the stage's checkpoints and export; a render-time preset's
 `weights.json` names the export it scored and its SHA-256) and
-`reports/ablate/<preset>-s<seed>/{metrics.json, timings.json, preset.json}` (LightNet presets also
+`reports/ablate/<preset>-s<seed>/{metrics.json, timings.json, preset.json, views.csv}` (`views.csv`: each
+test view's glossy re-render PSNR, which a render-time claim is paired on view by view; LightNet presets also
 `worst_views.json`, at `worst_view_figure_seeds` `worst_views.png` (each worst view's worst case:
 photo, Mitsuba, LightNet, scaled constant), and `insertion_scatter.png`, every case's PSNR against the
 scaled constant's; a preset scored with another layer than it trained with, `layers.png`: the paper's
@@ -33,6 +34,7 @@ MLflow run `ablate-<profile>` per preset and seed (tags preset, seed) holds them
 
 from __future__ import annotations
 
+import csv
 import hashlib
 import json
 import time
@@ -143,10 +145,11 @@ def full_frame_render(system, batch) -> torch.Tensor:
 
 def lighting_extras(
     cfg: DictConfig, stage_cfg: DictConfig, score_cfg: DictConfig, export: Path, tested: dict[str, float] | None
-) -> tuple[dict, dict, list[dict], list[Path]]:
-    """(metrics, timings, worst views, figures) of the LightNet in `export` scored as the preset says
-    (`score_cfg`, `scoring_config`'s): the test metrics (`tested`, the training stage's own when it tested with that
-    layer; else None and the test split is scored here), the glossy-pixel re-render (`glossy_render`),
+) -> tuple[dict, dict, list[dict], list[Path], list[dict]]:
+    """(metrics, timings, worst views, figures, per-view glossy scores) of the LightNet in `export` scored as
+    the preset says (`score_cfg`, `scoring_config`'s): the test metrics (`tested`, the training stage's own
+    when it tested with that layer; else None and the test split is scored here), the glossy-pixel
+    re-render (`glossy_render`),
     seconds per image, the test-time thresholds for the `full` preset, insertion and editing, the views
     LightNet renders worst, the per-case insertion figure (`insertion_figure`) and, for a preset that
     changes the layer at render time, the layers' comparison on one view (`layer_figure`)."""
@@ -210,7 +213,21 @@ def lighting_extras(
         batch = next(b for b in dm.plain_loader("test", batch_size=1) if b["id"][0] == view)
         trained_layer = MCRenderLayer.from_config(stage_cfg.render, "eval_spp")
         figures.append(layer_figure(system, trained_layer, batch, cfg.glossy, report / "layers.png"))
-    return metrics, timings, worst, figures
+    return metrics, timings, worst, figures, per_view
+
+
+VIEW_COLUMNS = ("id", "test/glossy_render_psnr")  # views.csv: the per-view scores a render-time claim is tested on
+
+
+def write_views(path: Path, per_view: list[dict]) -> Path:
+    """`views.csv`: one row per test view with glossy pixels (`glossy_render`'s records): its id and glossy
+    re-render PSNR, so that the report can pair a render-time preset with `full` view by view (header only
+    for a run that scores no views)."""
+    with path.open("w", newline="") as f:
+        w = csv.writer(f)
+        w.writerow(VIEW_COLUMNS)
+        w.writerows((v["id"], repr(float(v["psnr"]))) for v in per_view)
+    return path
 
 
 def worst_view_figure(edit_cfg: DictConfig, records: list[dict], worst: list[dict], path: Path, title: str) -> Path:
@@ -406,6 +423,7 @@ def run(cfg: DictConfig) -> dict[str, float]:
             out.mkdir(parents=True, exist_ok=True)
             (out / "UNAVAILABLE.txt").write_text(f"ablation={cfg.preset} did not run: {why}\n")
             (report / "worst_views.json").write_text("[]")  # every declared out is written, empty here
+            write_views(report / "views.csv", [])
             timings = {"stage_minutes": (time.perf_counter() - started) / 60.0}
             publish(report, {"available": 0.0}, artifacts=(report / "preset.json",), timings=timings)
             return {"available": 0.0}
@@ -431,15 +449,16 @@ def run(cfg: DictConfig) -> dict[str, float]:
             if weights is not None or score_cfg.render.estimator != stage_cfg.render.estimator:
                 metrics = {k: v for k, v in metrics.items() if not k.startswith(("test/", "baseline/"))}
             tested = {k: v for k, v in metrics.items() if k.startswith("test/")} or None
-            extra, extra_timings, worst, figures = lighting_extras(cfg, stage_cfg, score_cfg, export, tested)
+            extra, extra_timings, worst, figures, per_view = lighting_extras(cfg, stage_cfg, score_cfg, export, tested)
             metrics.update(extra)
             timings.update(extra_timings)
             (report / "worst_views.json").write_text(json.dumps(worst, indent=1))
-            artifacts.append(report / "worst_views.json")
+            artifacts += [report / "worst_views.json", write_views(report / "views.csv", per_view)]
             for figure in figures:
                 mlflow.log_artifact(str(figure), "figures")
         else:  # the training stage's test maps (train_material always writes them), also on the ablate run
             (report / "worst_views.json").write_text("[]")  # a MaterialNet preset scores no views' light
+            write_views(report / "views.csv", [])
             mlflow.log_artifact(str(Path(stage_cfg.report_dir) / "test_maps.png"), "figures")
         metrics.update(training_health(run.info.run_id, metrics))
         timings["stage_minutes"] = (time.perf_counter() - started) / 60.0  # from the start of run(): imports excluded

@@ -21,6 +21,7 @@ preset/seed run of the current reports is attached (MLflow's parent tag), carryi
 
 from __future__ import annotations
 
+import csv
 import json
 import math
 from pathlib import Path
@@ -54,7 +55,7 @@ MATERIAL_COLUMNS = [
 
 def read_runs(ablate_dir: Path, claims: dict | None = None) -> dict[str, dict[int, dict]]:
     """{preset: {seed: {"preset": preset.json, "metrics": ..., "timings": ...}}} of every run folder.
-    claims: {preset: {claim, source, expect}} (conf/claims/, the report's own config), laid over each
+    claims: {preset: {claim, source, primary, secondary}} (conf/claims/, the report's own config), laid over each
     run's preset description: a claim is the report's to state, not the run's."""
     runs: dict[str, dict[int, dict]] = {}
     for folder in sorted(p for p in ablate_dir.iterdir() if p.is_dir()):
@@ -65,12 +66,37 @@ def read_runs(ablate_dir: Path, claims: dict | None = None) -> dict[str, dict[in
         data = {name: json.loads(f.read_text()) if f.is_file() else {} for name, f in files.items()}
         worst = folder / "worst_views.json"
         data["worst_views"] = json.loads(worst.read_text()) if worst.is_file() else []
+        data["views"] = read_view_scores(folder / "views.csv") if (folder / "views.csv").is_file() else None
         data["figures"] = sorted(p.name for p in folder.glob("*.png"))
+        if claims is not None:  # the report's claims replace whatever claim an older run recorded
+            for key in ("claim", "source", "expect", "primary", "secondary"):
+                data["preset"].pop(key, None)
         data["preset"].update((claims or {}).get(data["preset"]["name"], {}))
         runs.setdefault(data["preset"]["name"], {})[int(data["preset"]["seed"])] = data
     if not runs:
         raise FileNotFoundError(f"{ablate_dir}: no ablation run folders (run the ablate stage first)")
     return runs
+
+
+def read_view_scores(path: Path) -> dict[str, dict[str, float]]:
+    """An ablation run's `views.csv` (id, then one column per metric): {view id: {metric: value}}. A
+    non-finite or unreadable value is refused naming the file and row (a view is never dropped)."""
+    with path.open(newline="") as f:
+        rows = list(csv.reader(f))
+    if not rows or rows[0][:1] != ["id"]:
+        raise ValueError(f"{path}: expected a header starting with 'id', got {rows[0] if rows else 'an empty file'}")
+    header, out = rows[0], {}
+    for n, row in enumerate(rows[1:], 2):
+        if len(row) != len(header):
+            raise ValueError(f"{path}: row {n} has {len(row)} fields, the header {len(header)}")
+        try:
+            values = {k: float(v) for k, v in zip(header[1:], row[1:], strict=True)}
+        except ValueError as err:
+            raise ValueError(f"{path}: row {n}: {err}") from None
+        if not all(math.isfinite(v) for v in values.values()):
+            raise ValueError(f"{path}: row {n} ({row[0]}): a non-finite score")
+        out[row[0]] = values
+    return out
 
 
 def spread(values: list[float]) -> tuple[float, float]:
@@ -99,9 +125,52 @@ def compare(runs: dict, preset: str, reference: str, key: str) -> dict:
         diffs.append(a - b)
         ref.append(b)
     if not diffs:
-        return {"seeds": 0, "diffs": [], "diff": float("nan"), "p": float("nan"), "diverged": diverged}
+        return {"seeds": 0, "diffs": [], "diff": float("nan"), "p": float("nan"), "diverged": diverged, "unit": "seeds"}
     effect = seed_effect([np.array([d]) for d in diffs])
-    return {**effect, "seeds": len(diffs), "diffs": diffs, "reference_mean": float(np.mean(ref)), "diverged": diverged}
+    return {
+        **effect,
+        "seeds": len(diffs),
+        "diffs": diffs,
+        "reference_mean": float(np.mean(ref)),
+        "diverged": diverged,
+        "unit": "seeds",
+    }
+
+
+def compare_by_views(runs: dict, preset: str, reference: str, key: str) -> dict | None:
+    """A render-time preset (it scores the reference's own weights) against its reference, with the test
+    views as units: conditional on each seed's trained weights, the question is whether the layer changes
+    the score on views like these, so each view's paired difference preset - reference (its mean over the
+    seeds' weights) is one unit and the t interval runs over views. compare()'s fields with "seeds" the
+    number of views (the units), "weights" the seeds whose weights were scored, "unit": "views"; None
+    when a seed of either run wrote no per-view scores of `key` (then the claim falls back to seeds)."""
+    seeds = sorted(set(runs.get(preset, {})) & set(runs.get(reference, {})))
+    per_seed = []
+    for s in seeds:
+        a, b = runs[preset][s].get("views"), runs[reference][s].get("views")
+        if not a or not b:
+            return None
+        d = {v: a[v][key] - b[v][key] for v in set(a) & set(b) if key in a[v] and key in b[v]}
+        if not d:
+            return None
+        per_seed.append(d)
+    if not per_seed:
+        return None
+    views = sorted(set.intersection(*(set(d) for d in per_seed)))
+    if len(views) < 2:
+        return None
+    means = [float(np.mean([d[v] for d in per_seed])) for v in views]
+    effect = seed_effect([np.array([m]) for m in means])
+    ref = [float(np.mean([runs[reference][s]["views"][v][key] for v in views])) for s in seeds]
+    return {
+        **effect,
+        "seeds": len(views),
+        "weights": len(per_seed),
+        "diffs": means,
+        "reference_mean": float(np.mean(ref)),
+        "diverged": 0,
+        "unit": "views",
+    }
 
 
 def expected_sign(expect: dict) -> int:
@@ -115,30 +184,60 @@ def expected_sign(expect: dict) -> int:
 
 
 def expectations(preset: dict) -> list[dict]:
-    """A preset's claim metrics (`expect`: one {metric, higher_is_better, holds_if} or a list of them);
-    [] for a preset without a paper claim."""
-    if not preset.get("claim") or not preset.get("expect"):
+    """A preset's claim metrics, the primary first: [{metric, higher_is_better, holds_if, "role": "primary"
+    | "secondary"}]; [] for a preset without a paper claim. The claim declares one `primary` (its verdict)
+    and any `secondary` (reported, never judged); a lone `expect` (one metric) is the primary."""
+    if not preset.get("claim"):
         return []
-    e = preset["expect"]
-    return list(e) if isinstance(e, list) else [e]
+    primary = preset.get("primary")
+    if primary is None:
+        expect = preset.get("expect")
+        if isinstance(expect, list):
+            if len(expect) != 1:
+                raise ValueError(
+                    f"claim of preset {preset.get('name')!r}: {len(expect)} metrics under `expect` and no "
+                    "`primary`: declare the one metric that decides the claim as `primary`, the rest `secondary`"
+                )
+            expect = expect[0]
+        primary = expect
+    if not primary:
+        return []
+    secondary = preset.get("secondary") or []
+    if isinstance(secondary, dict):
+        secondary = [secondary]
+    return [{**primary, "role": "primary"}, *({**e, "role": "secondary"} for e in secondary)]
 
 
 def claim_verdicts(runs: dict, alpha: float = 0.05) -> dict[tuple[str, str], dict]:
-    """Every (preset, claim metric) of every preset with a paper claim, tested against the preset's
-    reference as one family (Holm): {(preset, metric): compare()'s fields + "p_holm", "verdict", "metric",
-    "effect_size", "power"}. A preset that did not run here (unavailable) or has fewer than two seeds is
-    `not testable`. `power`: the probability of a verdict at the family's strictest level (alpha / number
-    of testable hypotheses) if the true difference were `effect_size` (0.5 dB on a PSNR, else 5 % of the
-    reference's mean) and the seeds spread as observed; `mde`: the minimal detectable effect at power 0.8
-    at that level and spread; `seeds_needed`: the seeds that would give power 0.8 at `effect_size` (NaN:
-    more than 64); all three post hoc, from the observed spread. A seed whose run diverged is
-    counted (`diverged`) and makes the claim `diverged`, never dropped."""
-    claims, found = {}, {}
+    """Every (preset, claim metric) of every preset with a paper claim: {(preset, metric): compare()'s
+    fields + "role", "metric", and for the primary metrics "p_holm", "verdict", "effect_size", "power",
+    "mde", "seeds_needed"}. Only the primary metrics (one per claim) form the Holm family; a secondary
+    metric gets its interval and the verdict "secondary" (reported, not judged). A preset that did not run
+    here (unavailable) or has fewer than two seeds is `not testable`. `power`: the probability of a verdict
+    at the family's strictest level (alpha / number of testable claims) if the true difference were
+    `effect_size` (0.5 dB on a PSNR, else 5 % of the reference's mean) and the seeds spread as observed;
+    `mde`: the minimal detectable effect at power 0.8 at that level and spread; `seeds_needed`: the seeds
+    that would give power 0.8 at `effect_size` (NaN: more than 64); all three post hoc, from the observed
+    spread. A seed whose run diverged is counted (`diverged`) and makes the claim `diverged`, never
+    dropped."""
+    claims, found, secondary = {}, {}, {}
     for name, seeds in runs.items():
         first = seeds[next(iter(seeds))]["preset"]
         unavailable = any("unavailable" in d["preset"] for d in seeds.values())
         for e in expectations(first):
-            c = {"seeds": 0, "diffs": []} if unavailable else compare(runs, name, first["reference"], e["metric"])
+            c = {"seeds": 0, "diffs": [], "unit": "seeds"}
+            if not unavailable:
+                c = compare(runs, name, first["reference"], e["metric"])
+                if first.get("weights_from") and not c["diverged"]:  # render-time: views are the units
+                    c = compare_by_views(runs, name, first["reference"], e["metric"]) or c
+            if e["role"] == "secondary":
+                secondary[(name, e["metric"])] = {
+                    **c,
+                    "role": "secondary",
+                    "metric": e["metric"],
+                    "verdict": "secondary",
+                }
+                continue
             key = f"{name}:{e['metric']}"
             found[key] = (name, c, e)
             claims[key] = {
@@ -157,17 +256,19 @@ def claim_verdicts(runs: dict, alpha: float = 0.05) -> dict[tuple[str, str], dic
         spread_ok = math.isfinite(sd) and sd > 0
         pw = power(size, sd, int(d["seeds"]), level) if spread_ok else float("nan")
         mde = minimal_detectable_effect(sd, int(d["seeds"]), level) if spread_ok else float("nan")
-        needed = seeds_needed(size, sd, level) if spread_ok and math.isfinite(size) else None
+        most = 64 if c.get("unit", "seeds") == "seeds" else 1024  # units: seeds, or views for a render-time claim
+        needed = seeds_needed(size, sd, level, most=most) if spread_ok and math.isfinite(size) else None
         out[(name, e["metric"])] = {
             **c,
             **d,
+            "role": "primary",
             "metric": e["metric"],
             "effect_size": size,
             "power": pw,
             "mde": mde,
             "seeds_needed": float("nan") if needed is None else float(needed),
         }
-    return out
+    return {**out, **secondary}
 
 
 def _fmt(mean: float, half: float) -> str:
@@ -188,6 +289,11 @@ def _seeds(n: float) -> str:
 def _interval(c: dict) -> str:
     """'-0.412 [-0.9, +0.08] (seeds: -0.3, -0.5)': the mean difference, its 95 % t interval over seeds and
     each seed's difference; 'not testable' under two seeds."""
+    if c.get("unit") == "views":
+        return (
+            f"{c['diff']:+.3g} [{c['lo']:+.3g}, {c['hi']:+.3g}] ({int(c['seeds'])} views, each the mean over "
+            f"{int(c['weights'])} seeds' weights)"
+        )
     per_seed = ", ".join(f"{d:+.3g}" for d in c["diffs"])
     if c["seeds"] < 2:
         return f"{per_seed or 'no seed'} (not testable: fewer than 2 seeds)"
@@ -235,6 +341,8 @@ def verdict_text(v: dict) -> str:
     detectable effect (it does not say there is none); a diverged one counts its diverged seeds; a claim
     whose seeds all gave the same difference says why it is not testable."""
     verdict = v["verdict"]
+    if verdict == "secondary":
+        return "secondary: reported, no verdict"
     if verdict == "inconclusive" and math.isfinite(v.get("mde", float("nan"))):
         return f"inconclusive: no effect larger than {v['mde']:.3g} detected"
     if verdict == "diverged":
@@ -245,23 +353,34 @@ def verdict_text(v: dict) -> str:
 
 
 def claims_table(runs: dict) -> tuple[list[str], dict[str, float]]:
-    """One row per paper claim and metric (`claim_verdicts`, one Holm family): the claim and its source,
-    the preset, the metric, the preset minus its reference with the 95 % t interval over seeds and each
-    seed's difference, the verdict, Holm's p and the power at the stated effect size; and the numbers."""
+    """One row per paper claim and metric (`claim_verdicts`; the primary metrics are one Holm family): the
+    claim and its source, the preset, the metric and its role, the preset minus its reference with the
+    95 % t interval over seeds and each seed's difference, the verdict (primary only), Holm's p, the power
+    at the stated effect size, the minimal detectable effect and the seeds for power 0.8; and the numbers."""
     verdicts = claim_verdicts(runs)
     lines = [
-        "| paper claim | preset | metric | preset - reference (95 % t interval over seeds) | verdict | Holm p "
-        "| power at effect | minimal detectable effect (power 0.8) | seeds for power 0.8 at effect |",
+        "| paper claim | preset | metric | preset - reference (95 % t interval over seeds; over views for a "
+        "render-time claim) | verdict | Holm p | power at effect | minimal detectable effect (power 0.8) "
+        "| seeds (or views) for power 0.8 at effect |",
         "|---|---|---|---|---|---|---|---|---|",
     ]
     numbers = {}
-    for (name, metric), v in sorted(verdicts.items()):
+    order = sorted(verdicts, key=lambda k: (k[0], verdicts[k]["role"] != "primary", k[1]))
+    for name, metric in order:
+        v = verdicts[name, metric]
         first = runs[name][next(iter(runs[name]))]["preset"]
-        claim = f"{first['claim']} ({first.get('source', '')})"
         versus = _interval(v) if v["seeds"] else "not run"
+        if v["role"] == "secondary":
+            lines.append(f"| (secondary) | {name} | {metric} | {versus} | {verdict_text(v)} | - | - | - | - |")
+            numbers[f"{name}/vs_reference/{metric}"] = float(v["diff"])
+            for field in ("lo", "hi", "diverged"):
+                numbers[f"{name}/vs_reference/{metric}/{field}"] = float(v.get(field, float("nan")))
+            continue
+        claim = f"{first['claim']} ({first.get('source', '')})"
         lines.append(
-            f"| {claim} | {name} | {metric} | {versus} | {verdict_text(v)} | {_p(v['p_holm'])} "
-            f"| {_p(v['power'])} at {v['effect_size']:.3g} | {_p(v['mde'])} | {_seeds(v['seeds_needed'])} |"
+            f"| {claim} | {name} | **{metric}** | {versus} | {verdict_text(v)} | {_p(v['p_holm'])} "
+            f"| {_p(v['power'])} at {v['effect_size']:.3g} | {_p(v['mde'])} | {_seeds(v['seeds_needed'])}"
+            f"{' views' if v.get('unit') == 'views' and math.isfinite(v['seeds_needed']) else ''} |"
         )
         numbers[f"{name}/vs_reference/{metric}"] = float(v["diff"])
         for field in ("lo", "hi", "p_holm", "power", "mde", "seeds_needed", "diverged"):
@@ -362,7 +481,10 @@ def ablation_tables(
     ]
     return [
         "Intervals in these tables are 95 % t intervals over seeds of the paired (same seed, same test views)",
-        "differences; verdicts are Holm-adjusted over every claim's metrics (`pipeline/metrics/verdicts.py`).",
+        "differences, except a render-time claim's (a preset scoring `full`'s own weights), which runs over the",
+        "test views (each view's difference averaged over the seeds' weights) where the runs wrote per-view scores.",
+        "Each claim is decided on its one primary metric (bold), Holm-adjusted over the claims",
+        "(`pipeline/metrics/verdicts.py`); secondary metrics are reported without a verdict.",
         "",
         "### Paper claims",
         "",
@@ -425,10 +547,15 @@ def run(cfg: DictConfig) -> dict[str, float]:
         "Each preset changes one thing against its reference (`full` for LightNet, `material_small` for",
         "MaterialNet) on the same seed, data, schedule and test views; a render-time preset",
         "(`no_mc_render`, `uniform_render`) scores `full`'s own weights with another render layer.",
-        "Paper claims: the preset minus its reference on each metric the claim is about, the mean over",
+        "Paper claims: the preset minus its reference on the metrics the claim is about, the mean over",
         "seeds with its 95 % t interval over the seeds' differences (both the seeds' and the views' noise",
-        "are in it) and each seed's difference. Verdicts (`pipeline/metrics/verdicts.py`): every claim",
-        "metric is one hypothesis of one family, tested at 5 % family-wise by Holm's procedure: supported,",
+        "are in it) and each seed's difference; a render-time claim (`full`'s own weights under another",
+        "layer) is conditional on those weights, so its units are the test views (`views.csv`: each view's",
+        "difference averaged over the seeds' weights, a t interval over views), falling back to seeds for",
+        "runs without per-view scores. Verdicts (`pipeline/metrics/verdicts.py`): each claim is",
+        "decided on its one primary metric (bold; declared with its direction in conf/claims/), the claims",
+        "one family tested at 5 % family-wise by Holm's procedure; secondary metrics are reported beside it",
+        "without a verdict, so adding one never weakens another claim's test. Verdicts: supported,",
         "contradicted, inconclusive, not testable (fewer than 2 seeds, every seed the same difference, or",
         "the preset cannot run here) or diverged (a seed's run diverged: counted, a failed stability check);",
         "`power`: the chance of a verdict if the true difference were the stated size (0.5 dB on a PSNR,",
