@@ -336,6 +336,47 @@ def table(runs: dict, stage: str, columns: list) -> tuple[list[str], dict[str, f
     return lines, numbers
 
 
+def seed_design(runs: dict, alpha: float = 0.05) -> list[dict]:
+    """The seed count each training-time claim needs, designed from its reference's runs alone (what is
+    known before the presets run): the spread of the reference's per-seed values of the claim's primary
+    metric, times sqrt(2) for a paired difference of two independent runs (conservative: a shared seed
+    correlates the pair positively), at the family's strictest level (alpha / number of claims). One
+    {preset, metric, reference, reference_seeds, reference_sd, effect_size, seeds_needed (NaN: more than
+    64), mde_at_seeds (the minimal detectable effect at the seeds the preset ran)} per claim whose
+    reference ran on two or more seeds; render-time claims (views as units) are not in it."""
+    primaries, family = [], 0
+    for name, seeds in sorted(runs.items()):
+        first = seeds[next(iter(seeds))]["preset"]
+        metrics = expectations(first)
+        family += bool(metrics)
+        if metrics and not first.get("weights_from"):
+            primaries.append((name, first["reference"], metrics[0]["metric"], len(seeds)))
+    level = alpha / max(family, 1)
+    rows = []
+    for name, reference, metric, ran in primaries:
+        values = [d["metrics"].get(metric) for d in runs.get(reference, {}).values()]
+        values = np.asarray([v for v in values if v is not None and math.isfinite(v)], float)
+        if len(values) < 2 or values.std(ddof=1) == 0:
+            continue
+        sd = float(values.std(ddof=1) * math.sqrt(2.0))
+        size = POWER_DB if metric.endswith("psnr") else POWER_SHARE * abs(float(values.mean()))
+        needed = seeds_needed(size, sd, level)
+        rows.append(
+            {
+                "preset": name,
+                "metric": metric,
+                "reference": reference,
+                "reference_seeds": len(values),
+                "reference_sd": float(values.std(ddof=1)),
+                "effect_size": size,
+                "seeds_needed": float("nan") if needed is None else float(needed),
+                "seeds_run": ran,
+                "mde_at_seeds": minimal_detectable_effect(sd, ran, level) if ran >= 2 else float("nan"),
+            }
+        )
+    return rows
+
+
 def verdict_text(v: dict) -> str:
     """A claim's verdict as the table reads it: an inconclusive claim bounds the effect by its minimal
     detectable effect (it does not say there is none); a diverged one counts its diverged seeds; a claim
@@ -385,6 +426,24 @@ def claims_table(runs: dict) -> tuple[list[str], dict[str, float]]:
         numbers[f"{name}/vs_reference/{metric}"] = float(v["diff"])
         for field in ("lo", "hi", "p_holm", "power", "mde", "seeds_needed", "diverged"):
             numbers[f"{name}/vs_reference/{metric}/{field}"] = float(v.get(field, float("nan")))
+    design = seed_design(runs)
+    if design:
+        lines += [
+            "",
+            "Seeds designed before running (`seed_design`): from the reference's own seeds, the spread of the",
+            "claim's primary metric times sqrt(2) for a paired difference (conservative), at the family's level:",
+            "",
+            "| preset | primary metric | reference seeds | reference's seed sd | effect | seeds for power 0.8 "
+            "| seeds run | minimal detectable effect at the seeds run |",
+            "|---|---|---|---|---|---|---|---|",
+        ]
+        for d in design:
+            lines.append(
+                f"| {d['preset']} | {d['metric']} | {d['reference_seeds']} | {d['reference_sd']:.3g} "
+                f"| {d['effect_size']:.3g} | {_seeds(d['seeds_needed'])} | {d['seeds_run']} | {_p(d['mde_at_seeds'])} |"
+            )
+            numbers[f"{d['preset']}/design/seeds_needed"] = d["seeds_needed"]
+            numbers[f"{d['preset']}/design/mde_at_seeds"] = d["mde_at_seeds"]
     return lines, numbers
 
 

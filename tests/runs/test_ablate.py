@@ -405,7 +405,8 @@ def test_only_the_primary_metric_of_a_claim_is_in_the_family(tmp_path):
     for key in alone:  # the family is the two primaries, with or without the secondary
         assert v[key]["p_holm"] == pytest.approx(alone[key]["p_holm"]) and v[key]["verdict"] == alone[key]["verdict"]
     rows, numbers = claims_table(read_runs(root))
-    assert sum("| no_mc |" in r for r in rows) == 2
+    claim_rows = rows[: rows.index("")] if "" in rows else rows  # the seed design table follows
+    assert sum("| no_mc |" in r for r in claim_rows) == 2
     assert any("| (secondary) | no_mc | test/glossy_render_psnr |" in r and "no verdict" in r for r in rows)
     assert "no_mc/vs_reference/test/glossy_render_psnr/p_holm" not in numbers
     # a claim must say which metric decides it
@@ -534,3 +535,27 @@ def test_render_time_claims_by_view_keep_the_false_positive_rate(noise):
         rejected += c["p"] <= 0.05
     rate = rejected / studies
     assert rate <= 0.05 + 3 * math.sqrt(0.05 * 0.95 / studies), rate
+
+
+def test_seeds_are_designed_from_the_references_spread(tmp_path):
+    """Before a preset runs, its seed count comes from the reference's own seeds: their spread on the
+    claim's primary metric times sqrt(2) (a paired difference), at the family's level; render-time claims
+    (views as units) are not designed over seeds."""
+    from pipeline.metrics.verdicts import minimal_detectable_effect, seeds_needed
+    from pipeline.runs.report import claims_table, read_runs, seed_design
+
+    values = {("full", s): 20.0 + (0.0, 0.4, 0.8)[s] for s in range(3)}  # sd 0.4
+    values.update({("no_mc", s): 19.0 for s in range(2)})
+    values.update({("no_mc_render", s): 19.5 for s in range(3)})
+    root = _fake_runs(tmp_path, values)
+    for s in range(3):
+        path = root / f"no_mc_render-s{s}" / "preset.json"
+        path.write_text(json.dumps({**json.loads(path.read_text()), "weights_from": "full"}))
+    [row] = seed_design(read_runs(root))
+    sd = 0.4 * math.sqrt(2.0)
+    assert row["preset"] == "no_mc" and row["reference_sd"] == pytest.approx(0.4) and row["effect_size"] == 0.5
+    assert row["seeds_needed"] == seeds_needed(0.5, sd, 0.05 / 2)  # two claims in the family
+    assert row["seeds_run"] == 2 and row["mde_at_seeds"] == pytest.approx(minimal_detectable_effect(sd, 2, 0.025))
+    lines, numbers = claims_table(read_runs(root))
+    assert any(line.startswith("| no_mc | test/render_psnr | 3 | 0.4 | 0.5 |") for line in lines)
+    assert numbers["no_mc/design/seeds_needed"] == row["seeds_needed"]
