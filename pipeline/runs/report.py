@@ -576,7 +576,8 @@ def results_markdown(reports: Path, ablate_dir: Path, profile: str, claims: dict
     tables = ablation_tables(light_rows, mat_rows, claim_rows, runs, "../reports/ablate")
     counts: dict[str, int] = {}
     for v in claim_verdicts(runs).values():
-        counts[v["verdict"]] = counts.get(v["verdict"], 0) + 1
+        if v["role"] == "primary":  # a secondary metric has no verdict to count
+            counts[v["verdict"]] = counts.get(v["verdict"], 0) + 1
     return render_results(reports, tables, profile, counts)
 
 

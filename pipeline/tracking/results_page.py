@@ -596,7 +596,8 @@ def section_findings(facts: dict, claim_counts: dict[str, int] | None) -> list[s
     if claim_counts:
         told = ", ".join(f"{n} {verdict}" for verdict, n in sorted(claim_counts.items()))
         lines.append(
-            f"- Paper claims tested by the ablations (metrics, Holm-adjusted): {told}. `reports/report/ablations.md`."
+            f"- Paper claims tested by the ablations (each on its primary metric, Holm-adjusted): {told}. "
+            "`reports/report/ablations.md`."
         )
     if len(lines) == 2:
         lines.append("No stage reports yet: run `dvc repro`.")
