@@ -27,9 +27,10 @@ def _threads_per_worker() -> int | None:
     return max(1, (os.cpu_count() or 1) // int(workers))
 
 
-if _threads_per_worker() is not None:  # before anything imports torch; inherited by subprocesses
-    os.environ.setdefault("OMP_NUM_THREADS", str(_threads_per_worker()))
-    os.environ.setdefault("MKL_NUM_THREADS", str(_threads_per_worker()))
+THREADS = _threads_per_worker()
+if THREADS is not None:  # before anything imports torch; inherited by subprocesses
+    os.environ.setdefault("OMP_NUM_THREADS", str(THREADS))
+    os.environ.setdefault("MKL_NUM_THREADS", str(THREADS))
 
 
 def free_port() -> int:
@@ -117,7 +118,7 @@ def _environment(tmp_path_factory, worker_id):
     if os.path.exists(LLVM):
         os.environ.setdefault("DRJIT_LIBLLVM_PATH", LLVM)
     os.environ["DVC_NO_ANALYTICS"] = "1"
-    if _threads_per_worker() is not None:  # in case a plugin imported torch before this file set the env
+    if THREADS is not None:  # in case a plugin imported torch before this file set the env
         import torch
 
         torch.set_num_threads(int(os.environ["OMP_NUM_THREADS"]))

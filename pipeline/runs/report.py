@@ -109,6 +109,12 @@ def spread(values: list[float]) -> tuple[float, float]:
 POWER_DB, POWER_SHARE = 0.5, 0.05
 
 
+def effect_size(metric: str, reference_mean: float) -> float:
+    """The effect a claim's power and seed count are stated at: `POWER_DB` on a PSNR, else `POWER_SHARE`
+    of the reference's mean (NaN when that mean is unknown)."""
+    return POWER_DB if metric.endswith("psnr") else POWER_SHARE * abs(reference_mean)
+
+
 def compare(runs: dict, preset: str, reference: str, key: str) -> dict:
     """Paired per-seed differences preset - reference on `key` (each a mean over the same test views) and
     their t interval over seeds (`metrics.verdicts.seed_effect`): {"seeds", "diffs", "diff", "lo", "hi",
@@ -217,9 +223,9 @@ def claim_verdicts(runs: dict, alpha: float = 0.05) -> dict[tuple[str, str], dic
     at the family's strictest level (alpha / number of testable claims) if the true difference were
     `effect_size` (0.5 dB on a PSNR, else 5 % of the reference's mean) and the seeds spread as observed;
     `mde`: the minimal detectable effect at power 0.8 at that level and spread; `seeds_needed`: the seeds
-    that would give power 0.8 at `effect_size` (NaN: more than 64); all three post hoc, from the observed
-    spread. A seed whose run diverged is counted (`diverged`) and makes the claim `diverged`, never
-    dropped."""
+    that would give power 0.8 at `effect_size` (NaN: over 64 seeds, or 1024 views); all three post hoc,
+    from the observed spread. A seed whose run diverged is counted (`diverged`) and makes the claim
+    `diverged`, never dropped."""
     claims, found, secondary = {}, {}, {}
     for name, seeds in runs.items():
         first = seeds[next(iter(seeds))]["preset"]
@@ -250,7 +256,7 @@ def claim_verdicts(runs: dict, alpha: float = 0.05) -> dict[tuple[str, str], dic
     out = {}
     for key, d in decided.items():
         name, c, e = found[key]
-        size = POWER_DB if e["metric"].endswith("psnr") else POWER_SHARE * abs(c.get("reference_mean", float("nan")))
+        size = effect_size(e["metric"], c.get("reference_mean", float("nan")))
         sd = d.get("se", float("nan")) * math.sqrt(d["seeds"]) if d["seeds"] >= 2 else float("nan")
         level = alpha / max(testable, 1)
         spread_ok = math.isfinite(sd) and sd > 0
@@ -359,7 +365,7 @@ def seed_design(runs: dict, alpha: float = 0.05) -> list[dict]:
         if len(values) < 2 or values.std(ddof=1) == 0:
             continue
         sd = float(values.std(ddof=1) * math.sqrt(2.0))
-        size = POWER_DB if metric.endswith("psnr") else POWER_SHARE * abs(float(values.mean()))
+        size = effect_size(metric, float(values.mean()))
         needed = seeds_needed(size, sd, level)
         rows.append(
             {
