@@ -72,6 +72,22 @@ def test_overfit_bench_room_embedding_and_roombox_variants(micro_shards):
     assert all(math.isfinite(x) for x in table["loss"] + box["loss"])
 
 
+def test_self_cpu_times_equal_the_profilers_key_averages():
+    import torch
+    from torch.profiler import ProfilerActivity, profile
+
+    x = torch.randn(64, 64, requires_grad=True)
+    with profile(activities=[ProfilerActivity.CPU]) as prof:
+        for _ in range(20):  # nested ops, ops that re-dispatch to themselves (sum), a backward pass
+            ((x @ x).relu().sum() + torch.cat([x, x]).std()).backward()
+    ours = train_step.self_cpu_times(prof.profiler.kineto_results.events())
+    theirs = {e.key: e for e in prof.key_averages()}
+    assert set(ours) == set(theirs) and len(ours) > 10
+    for name, e in theirs.items():
+        assert ours[name]["count"] == e.count, name
+        assert ours[name]["self_us"] == pytest.approx(e.self_cpu_time_total, rel=1e-9, abs=1e-3), name
+
+
 def test_train_step_bench_runs_small(micro_shards, micro_exports, tmp_path, monkeypatch):
     # the compiled SSRT setting compiles for tens of seconds: the smoke test times the eager ones
     monkeypatch.setattr(train_step, "SETTINGS", train_step.SETTINGS[:3])
