@@ -54,7 +54,14 @@ def test_bad_arguments_are_refused(capsys):
 
 
 def test_one_micro_room_renders_under_an_overridden_llvm_target(tmp_path):
-    report, arrays = render_bits.render("micro", target="haswell:4", overrides=["synth.denoise=false"])
+    cheap = [
+        "synth.denoise=false",
+        "synth.spp=2",
+        "synth.cases.spp=4",
+        "synth.cases.edit_spp=2",
+        "synth.lighting.spp=4",
+    ]
+    report, arrays = render_bits.render("micro", target="haswell:4", overrides=cheap)
     assert report["variant"] == "llvm_ad_rgb"  # the suite's machines run the llvm variant (libLLVM 19)
     assert report["llvm_target"]["cpu"] == "haswell" and report["llvm_target"]["vector_width"] == 4
     assert not report["denoise"] and report["host"]["model"]
