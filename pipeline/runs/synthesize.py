@@ -1,6 +1,7 @@
 """Stage `synthesize`: procedural rooms rendered with Mitsuba 3 into the InteriorVerse layout with lighting
 ground truth -> outputs/synthesize, and an out-of-distribution test set of rooms in another style (`ood`:
-other layouts, object shapes, materials and lights, never trained on) -> outputs/synthesize_ood; counts ->
+other layouts, object shapes, materials and lights, never trained on; rooms `ood_0000`, ...) ->
+outputs/synthesize_ood; counts ->
 reports/synthesize/metrics.json (DVC; `ood/<count>` for the second set), timings ->
 reports/synthesize/timings.json, both to MLflow; contact sheets samples.png and ood_samples.png."""
 
@@ -14,6 +15,8 @@ from omegaconf import DictConfig, OmegaConf
 from pipeline.data.synth.figures import contact_sheet
 from pipeline.data.synth.generate import SynthConfig, synthesize
 from pipeline.tracking import publish, stage_run
+
+OOD_PREFIX = "ood"  # its rooms are ood_0000, ...: no view id names a room of the main set
 
 PHASES = ("build", "camera", "gbuffer", "render", "lighting", "cases", "write")
 
@@ -78,7 +81,7 @@ def run(cfg: DictConfig) -> dict[str, float]:
         sheets = [_sheet(cfg.out_dir, summary, synth_cfg.views, n_sheet, report / "samples.png")]
         if ood_cfg is not None:
             seed = int(cfg.seed) + int(cfg.ood.seed_offset)
-            ood = synthesize(ood_cfg, cfg.ood.out_dir, seed, progress=bool(cfg.progress))
+            ood = synthesize(ood_cfg, cfg.ood.out_dir, seed, progress=bool(cfg.progress), prefix=OOD_PREFIX)
             ood_metrics, ood_timings = synthesize_metrics(ood)
             metrics.update({f"ood/{k}": v for k, v in ood_metrics.items()})
             timings.update({f"ood/{k}": v for k, v in ood_timings.items()})

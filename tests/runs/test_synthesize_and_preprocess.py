@@ -46,6 +46,15 @@ def test_preprocess_stage_reports_and_tracks(micro_stage_paths, tmp_path):
     assert metrics["ood/test_views"] == 4 and metrics["ood/views_rejected"] == 0 and "ood/train_views" not in metrics
     ood = json.loads((tmp_path / "outputs" / "preprocess_ood" / "manifest.json").read_text())
     assert list(ood["splits"]) == ["test"] and ood["source"] == "synthetic_ood" and ood["lighting"]
+    from pipeline.data import interiorverse as iv
+
+    main_rooms = {
+        n
+        for split in ("train", "val", "test")
+        for n in iv.read_split(micro_stage_paths["outputs"] / "synthesize", split, allow_empty=True)
+    }
+    ood_rooms = set(iv.read_split(micro_stage_paths["outputs"] / "synthesize_ood", "test"))
+    assert ood_rooms and all(n.startswith("ood_") for n in ood_rooms) and not ood_rooms & main_rooms  # ids never shared
     with pytest.raises(FileNotFoundError, match="ood.root=null"):  # a missing set is named, never skipped
         preprocess.run(compose_cfg("preprocess", [*cfg_args[:-1], f"ood.root={tmp_path}/nowhere"]))
     rejected = json.loads((tmp_path / "reports" / "preprocess" / "rejected.json").read_text())

@@ -62,8 +62,13 @@ class SynthConfig:
         return SynthConfig(**d, room=room, lighting=light, cases=cases)
 
 
-def scene_name(index: int) -> str:
-    return f"scene_{index:04d}"
+SCENE_PREFIX = "scene"  # the main set's rooms: scene_0000, scene_0001, ...
+
+
+def scene_name(index: int, prefix: str = SCENE_PREFIX) -> str:
+    """`<prefix>_<index, 4 digits>`: a second set with its own prefix (the out-of-distribution rooms) never
+    names a view the way the main set does."""
+    return f"{prefix}_{index:04d}"
 
 
 def scene_seed(seed: int, index: int) -> int:
@@ -71,7 +76,7 @@ def scene_seed(seed: int, index: int) -> int:
     return int(np.random.SeedSequence([int(seed), int(index)]).generate_state(1)[0] & 0x7FFFFFFF)
 
 
-def assign_splits(n: int, fractions: dict, seed: int) -> dict[str, list[str]]:
+def assign_splits(n: int, fractions: dict, seed: int, prefix: str = SCENE_PREFIX) -> dict[str, list[str]]:
     """Split scene names by scene (never by view): shuffled, val/test get round(f*n), at least one each
     whose fraction is positive, the rest train. A split with fraction 0 stays empty (an evaluation-only
     dataset: `{train: 0, val: 0, test: 1}`); a positive training fraction needs a training scene left."""
@@ -82,7 +87,7 @@ def assign_splits(n: int, fractions: dict, seed: int) -> dict[str, list[str]]:
     needed = sum(f > 0 for f in (f_test, f_val, f_train))
     if n < max(needed, 1):
         raise ValueError(f"synth.scenes={n}: need at least {max(needed, 1)} scenes for the non-empty splits")
-    names = [scene_name(i) for i in np.random.default_rng(seed).permutation(n)]
+    names = [scene_name(i, prefix) for i in np.random.default_rng(seed).permutation(n)]
     n_test = max(1, round(f_test * n)) if f_test > 0 else 0
     n_val = max(1, round(f_val * n)) if f_val > 0 else 0
     if f_train > 0 and n_test + n_val >= n:
@@ -97,17 +102,25 @@ def assign_splits(n: int, fractions: dict, seed: int) -> dict[str, list[str]]:
 
 
 def render_scene(
-    index: int, seed: int, cfg: SynthConfig, out: str, variant: str, threads: int, with_cases: bool = False
+    index: int,
+    seed: int,
+    cfg: SynthConfig,
+    out: str,
+    variant: str,
+    threads: int,
+    with_cases: bool = False,
+    prefix: str = SCENE_PREFIX,
 ) -> dict:
-    """Generate, render and write one scene (runs in a worker process); with_cases (val and test scenes)
-    also draws and renders its insertion and editing cases. Returns per-scene statistics."""
+    """Generate, render and write one scene, `scene_name(index, prefix)` (runs in a worker process);
+    with_cases (val and test scenes) also draws and renders its insertion and editing cases. Returns
+    per-scene statistics. The room and its random numbers depend on `seed` and `index` only."""
     mb.init_mitsuba(variant, threads)
     timer = Timer()
     s_seed = scene_seed(seed, index)
     with timer("build"):
         room, footprints, rng = generate_room(s_seed, cfg.views, cfg.room)
         scene = mb.load_scene(room, cfg.max_depth)
-    name = scene_name(index)
+    name = scene_name(index, prefix)
     redraws = 0
     for v, cam in enumerate(room.cameras):
         with timer("camera"):
@@ -180,14 +193,15 @@ def prepare_output(out: Path) -> None:
     (out / MARKER).write_text("written by the synthesize stage; cleared on every run\n")
 
 
-def synthesize(cfg: SynthConfig, out: str | Path, seed: int, progress: bool = True) -> dict:
-    """Render `cfg.scenes` rooms into `out` (InteriorVerse layout + lighting + splits).
+def synthesize(cfg: SynthConfig, out: str | Path, seed: int, progress: bool = True, prefix: str = SCENE_PREFIX) -> dict:
+    """Render `cfg.scenes` rooms into `out` (InteriorVerse layout + lighting + splits), named
+    `<prefix>_0000`, ... (`scene_name`).
 
     Returns a summary: counts, the Mitsuba variant, timings (seconds) and per-scene statistics; the
     dataset's own `dataset.json` is the same without timings (`dataset_record`).
     """
     out = Path(out)
-    splits = assign_splits(cfg.scenes, cfg.splits, seed)
+    splits = assign_splits(cfg.scenes, cfg.splits, seed, prefix)
     prepare_output(out)
     variant = mb.choose_variant(cfg.variant)
     cores = os.cpu_count() or 1
@@ -199,7 +213,9 @@ def synthesize(cfg: SynthConfig, out: str | Path, seed: int, progress: bool = Tr
     with ProcessPoolExecutor(workers, mp_context=get_context("spawn")) as pool:  # variant is per process
         with_cases = set(splits["val"]) | set(splits["test"])
         futures = [
-            pool.submit(render_scene, i, seed, cfg, str(out), variant, threads, scene_name(i) in with_cases)
+            pool.submit(
+                render_scene, i, seed, cfg, str(out), variant, threads, scene_name(i, prefix) in with_cases, prefix
+            )
             for i in range(cfg.scenes)
         ]
         for fut in as_completed(futures):
