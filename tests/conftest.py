@@ -83,6 +83,7 @@ def pytest_collection_modifyitems(config, items):
     pytest-xdist 3.8 writes the tag to `item._nodeid`, which pytest 9 no longer reads (the id lives in
     `item._id`), so the groups were silently ignored: a group's tests ran on both workers, each building
     the group's module fixture (the released LightNet, the finetuned models, the DVC project) again."""
+    _slow_modules_first(items)
     if not getattr(config.option, "loadgroup", False):  # set on xdist workers under --dist loadgroup
         return
     try:
@@ -95,6 +96,16 @@ def pytest_collection_modifyitems(config, items):
         names = sorted({str(m.args[0] if m.args else m.kwargs.get("name", "default")) for m in marks})
         if names and "@" not in item.nodeid:
             item._id = coerce_node_id(f"{item.nodeid}@{'_'.join(names)}")
+
+
+def _slow_modules_first(items) -> None:
+    """Run the modules that hold a `slow` test first, each kept whole (its module fixtures built once).
+
+    xdist hands out tests in collection order, so a long test collected late (the paper profile's run of
+    every stage, ~2.5 min) started while the other worker was running out of work and set the suite's
+    wall time; longest first leaves the short tests to fill both workers at the end."""
+    slow = {item.nodeid.split("::")[0] for item in items if item.get_closest_marker("slow")}
+    items.sort(key=lambda item: item.nodeid.split("::")[0] not in slow)  # stable: order kept within each
 
 
 def compose_cfg(name: str, overrides: list[str] | None = None):

@@ -108,9 +108,13 @@ def power(effect_size: float, seed_sd: float, seeds: int, alpha: float = 0.05) -
     mean difference is `effect_size` and the seed means' standard deviation is `seed_sd` (same units)."""
     if seeds < 2:
         return float("nan")
-    if not (seed_sd > 0 and math.isfinite(seed_sd)):
-        raise ValueError(f"power: seed_sd must be positive and finite, got {seed_sd}")
+    _check_seed_sd("power", seed_sd)
     return _power_at(effect_size / (seed_sd / math.sqrt(seeds)), seeds - 1, alpha)
+
+
+def _check_seed_sd(caller: str, seed_sd: float) -> None:
+    if not (seed_sd > 0 and math.isfinite(seed_sd)):
+        raise ValueError(f"{caller}: seed_sd must be positive and finite, got {seed_sd}")
 
 
 def _power_at(nc: float, df: int, alpha: float) -> float:
@@ -139,8 +143,7 @@ def minimal_detectable_effect(seed_sd: float, seeds: int, alpha: float = 0.05, t
         return float("nan")
     if not 0 < target < 1:
         raise ValueError(f"minimal_detectable_effect: target power must be in (0, 1), got {target}")
-    if not (seed_sd > 0 and math.isfinite(seed_sd)):
-        raise ValueError(f"minimal_detectable_effect: seed_sd must be positive and finite, got {seed_sd}")
+    _check_seed_sd("minimal_detectable_effect", seed_sd)
     # power depends on the effect only through nc = effect / (seed_sd / sqrt(seeds)): solve once for nc
     return _detectable_noncentrality(seeds - 1, alpha, target) * seed_sd / math.sqrt(seeds)
 

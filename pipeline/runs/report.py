@@ -399,12 +399,13 @@ def verdict_text(v: dict) -> str:
     return verdict
 
 
-def claims_table(runs: dict) -> tuple[list[str], dict[str, float]]:
+def claims_table(runs: dict, verdicts: dict | None = None) -> tuple[list[str], dict[str, float]]:
     """One row per paper claim and metric (`claim_verdicts`; the primary metrics are one Holm family): the
     claim and its source, the preset, the metric and its role, the preset minus its reference with the
     95 % t interval over seeds and each seed's difference, the verdict (primary only), Holm's p, the power
-    at the stated effect size, the minimal detectable effect and the seeds for power 0.8; and the numbers."""
-    verdicts = claim_verdicts(runs)
+    at the stated effect size, the minimal detectable effect and the seeds for power 0.8; and the numbers.
+    `verdicts`: `claim_verdicts(runs)` where the caller has them already."""
+    verdicts = claim_verdicts(runs) if verdicts is None else verdicts
     lines = [
         "| paper claim | preset | metric | preset - reference (95 % t interval over seeds; over views for a "
         "render-time claim) | verdict | Holm p | power at effect | minimal detectable effect (power 0.8) "
@@ -578,10 +579,11 @@ def results_markdown(reports: Path, ablate_dir: Path, profile: str, claims: dict
     runs = read_runs(ablate_dir, claims)
     light_rows, _ = table({**runs, **threshold_runs(runs)}, "train_lighting", LIGHT_COLUMNS)
     mat_rows, _ = table(runs, "train_material", MATERIAL_COLUMNS)
-    claim_rows, _ = claims_table(runs)
+    verdicts = claim_verdicts(runs)
+    claim_rows, _ = claims_table(runs, verdicts)
     tables = ablation_tables(light_rows, mat_rows, claim_rows, runs, "../reports/ablate")
     counts: dict[str, int] = {}
-    for v in claim_verdicts(runs).values():
+    for v in verdicts.values():
         if v["role"] == "primary":  # a secondary metric has no verdict to count
             counts[v["verdict"]] = counts.get(v["verdict"], 0) + 1
     return render_results(reports, tables, profile, counts)
