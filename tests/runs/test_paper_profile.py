@@ -198,7 +198,8 @@ def test_paper_profile_runs_one_step_of_every_stage_on_micro_data(tmp_path):
     assert np.isfinite(tl["mixed/test/render_psnr"])
     ft = finetune.run(compose_cfg("finetune", [*common, *one_step, "trainer.max_epochs=1", "finetune.batch_size=2"]))
     assert ft["global_step"] >= 1
-    ev = evaluate.run(compose_cfg("evaluate", [*common, 'light_overrides=["render.eval_spp=16"]']))
+    light = 'light_overrides=["render.eval_spp=16","lighting.eval_stride=16"]'  # as the training run above
+    ev = evaluate.run(compose_cfg("evaluate", [*common, light]))
     assert np.isfinite(ev["finetuned/synthetic/normal_angle_deg"])
     assert np.isfinite(ev["trained/synthetic_ood/gate/mean_material/roughness_mse"])
     assert np.isfinite(ev["lightnet/synthetic_ood/render_psnr"])
