@@ -190,10 +190,15 @@ def quoted(value: float, unit: str, source: str) -> dict:
     return {"value": value, "unit": unit, "source": source}
 
 
+def bench_dir() -> Path:
+    """reports/bench/ of this checkout: where every bench writes its JSON and PNG."""
+    return project_root() / "reports" / "bench"
+
+
 def write_report(name: str, payload: dict, device: str = "cpu", path: Path | None = None) -> Path:
     """reports/bench/<name>.json (or `path`): the payload with the bench's name, the machine and the
     run's `provenance`."""
-    path = Path(path) if path is not None else project_root() / "reports" / "bench" / f"{name}.json"
+    path = Path(path) if path is not None else bench_dir() / f"{name}.json"
     path.parent.mkdir(parents=True, exist_ok=True)
     head = {"benchmark": name, "machine": machine(device), "provenance": provenance()}
     path.write_text(json.dumps({**head, **payload}, indent=1) + "\n")

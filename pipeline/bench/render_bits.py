@@ -29,14 +29,10 @@ from pathlib import Path
 import numpy as np
 from matplotlib.figure import Figure
 
-from pipeline.bench.common import compose, project_root, publish, write_report
+from pipeline.bench.common import bench_dir, compose, publish, write_report
 
 SCENE = 1  # a test-split room of the micro profile: it has insertion and editing cases
 SEED = 0
-
-
-def bench_dir() -> Path:
-    return project_root() / "reports" / "bench"
 
 
 # ----------------------------------------------------------------------------------------------------
@@ -167,7 +163,8 @@ def render(
 
 
 def ulp_distance(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    """|a - b| in float32 units in the last place (finite values of equal sign; 0 where equal)."""
+    """|a - b| in float32 units in the last place, for finite values (across zero too: the smallest positive
+    float and its negative are 2 apart; +0 and -0 are 0 apart)."""
     ia = np.asarray(a, np.float32).view(np.int32).astype(np.int64)
     ib = np.asarray(b, np.float32).view(np.int32).astype(np.int64)
     # map the sign-magnitude bit patterns onto a line where adjacent floats differ by one
@@ -232,8 +229,9 @@ def compare(first: str, second: str) -> dict:
     (ra, a), (rb, b) = load_run(first), load_run(second)
     describe = ("host", "variant", "llvm_target", "override", "denoise", "total_sha256")
     arrays = compare_arrays(a, b)
-    differing = sorted(k for k in ra["files"] if ra["files"][k] != rb["files"].get(k))
-    arrays["summary"] = {"files differing": len(differing), "files": len(ra["files"]), **arrays["summary"]}
+    files = set(ra["files"]) | set(rb["files"])  # a file only one run wrote differs too
+    differing = sorted(k for k in files if ra["files"].get(k) != rb["files"].get(k))
+    arrays["summary"] = {"files differing": len(differing), "files": len(files), **arrays["summary"]}
     return {
         "runs": {first: {k: ra.get(k) for k in describe}, second: {k: rb.get(k) for k in describe}},
         "files_differing": differing,

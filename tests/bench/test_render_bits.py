@@ -73,3 +73,16 @@ def test_one_micro_room_renders_under_an_overridden_llvm_target(tmp_path):
     assert report["summary"]["arrays"] == len(arrays)
     render_bits.plot({"runs": {"a": {}, "b": {}}, **render_bits.compare_arrays(arrays, arrays)}, tmp_path / "r.png")
     assert (tmp_path / "r.png").stat().st_size > 5_000
+
+
+def test_compare_counts_a_file_only_one_run_wrote(tmp_path, monkeypatch):
+    import json
+
+    monkeypatch.setattr(render_bits, "bench_dir", lambda: tmp_path)
+    arrays = {"scene_0001/000_im.exr": np.ones((2, 2, 3), np.float32)}
+    for name, files in (("a", {"x.exr": "1"}), ("b", {"x.exr": "1", "y.npz": "2"})):
+        (tmp_path / f"render_bits_{name}.json").write_text(json.dumps({"files": files}))
+        np.savez(tmp_path / f"render_bits_{name}.npz", **arrays)
+    for first, second in (("a", "b"), ("b", "a")):
+        report = render_bits.compare(first, second)
+        assert report["files_differing"] == ["y.npz"] and report["summary"]["files"] == 2
