@@ -230,6 +230,13 @@ def write_views(path: Path, per_view: list[dict]) -> Path:
     return path
 
 
+def write_view_outputs(report: Path, worst: list[dict], per_view: list[dict]) -> tuple[Path, Path]:
+    """The two per-view outs every run writes (empty for a run that scores no views' light, so that every
+    declared out exists): `worst_views.json` (`worst_views`) and `views.csv` (`write_views`)."""
+    (report / "worst_views.json").write_text(json.dumps(worst, indent=1))
+    return report / "worst_views.json", write_views(report / "views.csv", per_view)
+
+
 def worst_view_figure(edit_cfg: DictConfig, records: list[dict], worst: list[dict], path: Path, title: str) -> Path:
     """The case LightNet renders worst in each of the `worst` views (`worst_views`), re-rendered as the
     insertion scoring rendered it (the same view seeds and case order), in `insertion_grid`: the photo,
@@ -422,8 +429,7 @@ def run(cfg: DictConfig) -> dict[str, float]:
             out = Path(cfg.out_dir)  # the stage's out exists and says why it holds no model
             out.mkdir(parents=True, exist_ok=True)
             (out / "UNAVAILABLE.txt").write_text(f"ablation={cfg.preset} did not run: {why}\n")
-            (report / "worst_views.json").write_text("[]")  # every declared out is written, empty here
-            write_views(report / "views.csv", [])
+            write_view_outputs(report, [], [])
             timings = {"stage_minutes": (time.perf_counter() - started) / 60.0}
             publish(report, {"available": 0.0}, artifacts=(report / "preset.json",), timings=timings)
             return {"available": 0.0}
@@ -452,13 +458,11 @@ def run(cfg: DictConfig) -> dict[str, float]:
             extra, extra_timings, worst, figures, per_view = lighting_extras(cfg, stage_cfg, score_cfg, export, tested)
             metrics.update(extra)
             timings.update(extra_timings)
-            (report / "worst_views.json").write_text(json.dumps(worst, indent=1))
-            artifacts += [report / "worst_views.json", write_views(report / "views.csv", per_view)]
+            artifacts += list(write_view_outputs(report, worst, per_view))
             for figure in figures:
                 mlflow.log_artifact(str(figure), "figures")
         else:  # the training stage's test maps (train_material always writes them), also on the ablate run
-            (report / "worst_views.json").write_text("[]")  # a MaterialNet preset scores no views' light
-            write_views(report / "views.csv", [])
+            write_view_outputs(report, [], [])  # a MaterialNet preset scores no views' light
             mlflow.log_artifact(str(Path(stage_cfg.report_dir) / "test_maps.png"), "figures")
         metrics.update(training_health(run.info.run_id, metrics))
         timings["stage_minutes"] = (time.perf_counter() - started) / 60.0  # from the start of run(): imports excluded
