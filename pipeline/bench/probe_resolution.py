@@ -189,14 +189,6 @@ def _distant(radiance: torch.Tensor):
     return light
 
 
-def guide_of(radiance: torch.Tensor, cfg):
-    """The light guide of a distant map (1, rows, cols, 3) under the stage's scoring (None when the scoring
-    layer takes none)."""
-    from pipeline.systems.insertion_scoring import probe_guide
-
-    return probe_guide(radiance) if cfg.scoring.guide and cfg.scoring.layer == "converged" else None
-
-
 def _lightnet_renders(ctx, v, shading, case, case_seed, generator, fine_layer, truth, tallies) -> dict:
     """The `lightnet` row at the stage's spp (advancing the view's generator as the `edit` stage does),
     then at the fine layer's spp LightNet alone and with either ray class given `truth`, each from the
@@ -258,7 +250,7 @@ def run(
             with torch.no_grad():
                 lights = {n: _distant(m) for n, m in maps.items()}
                 # each distant map guides its own samples, as `score_view` guides the nearest probe's
-                guides = {n: guide_of(m, cfg) for n, m in maps.items()}
+                guides = {n: insertion_scoring.probe_guide(m, cfg) for n, m in maps.items()}
                 renders["nearest_probe"] = render_case(
                     ctx["layers"]["nearest_probe"],
                     shading,

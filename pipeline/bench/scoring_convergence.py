@@ -37,8 +37,9 @@ def measure(
     progress: bool = True,
     view_ids: list[str] | None = None,
 ) -> list[dict]:
-    """One record per case: {view, class, psnr: {scale: {row: dB}}}, every row rendered at each `scale`
-    times its configured samples per pixel (`insertion_scoring.row_spp`) with the same seeds (the stage's)."""
+    """One record per case: {view, class, psnr: {scale: {row: dB}}} (and `psnr_with_noise` alike for the
+    rows scored in halves, `insertion_scoring.halves`), every row rendered at each `scale` times its
+    configured samples per pixel (`insertion_scoring.row_spp`) with the same seeds (the stage's)."""
     from pipeline.systems import insertion_scoring
 
     shared = insertion_scoring.stage_setup(cfg)
@@ -58,6 +59,11 @@ def measure(
             scored = insertion_scoring.score_view({**ctx, "layers": layer}, cases, cfg, rows)
             for rec, res in zip(per_case, scored, strict=True):
                 rec["psnr"][n] = {row: res["rows"][row]["psnr"] for row in rows}
+                plain = {
+                    row: res["rows"][row]["psnr_with_noise"] for row in rows if "psnr_with_noise" in res["rows"][row]
+                }
+                if plain:  # rows scored in halves: their plain PSNR too (what the noise costs them)
+                    rec.setdefault("psnr_with_noise", {})[n] = plain
         records += per_case
     if not records:
         raise ValueError(f"{cfg.data_root}: the {cfg.split} views' case files list no case")
@@ -82,6 +88,10 @@ def summarise(records: list[dict], scales: list[int], rows: tuple, tolerance: fl
                     ci = paired_bootstrap(diff, resamples, 0, groups=[r["view"] for r in rs])
                     changes[str(n)] = {"diff": ci["diff"], "lo": ci["lo"], "hi": ci["hi"]}
             entry["rows"][row] = {"mean_psnr": means, "change_at_4x": changes}
+            if all(row in r.get("psnr_with_noise", {}).get(scales[0], {}) for r in rs):
+                entry["rows"][row]["mean_psnr_with_noise"] = {
+                    str(n): float(np.mean([r["psnr_with_noise"][n][row] for r in rs])) for n in scales
+                }
         out["classes"][label] = entry
     for row in rows:
         ok = [
@@ -128,7 +138,10 @@ def plot(report: dict, path: Path) -> None:
     for ax, label in zip(axes, labels, strict=True):
         entry = report["classes"][label]
         for row, r in entry["rows"].items():
-            ax.plot(scales, [r["mean_psnr"][str(n)] for n in scales], "o-", ms=3, label=row)
+            line = ax.plot(scales, [r["mean_psnr"][str(n)] for n in scales], "o-", ms=3, label=row)[0]
+            if "mean_psnr_with_noise" in r:  # the same renders' plain PSNR, noise included
+                plain = [r["mean_psnr_with_noise"][str(n)] for n in scales]
+                ax.plot(scales, plain, "x--", ms=3, color=line.get_color(), label=f"{row}, plain PSNR")
         ax.set_xscale("log", base=2)
         ax.set_xticks(scales)
         ax.set_xticklabels([f"{n}x" for n in scales], fontsize=6)
@@ -149,22 +162,27 @@ def run(
     max_views: int | None,
     progress: bool = True,
     view_ids: list[str] | None = None,
+    rows: tuple = ROWS,
 ) -> dict:
     from pipeline.bench.common import compose
     from pipeline.systems.insertion_scoring import row_spp
 
     if sorted(set(scales)) != list(scales) or not scales or scales[0] < 1:
         raise ValueError(f"--scale {scales}: give increasing positive factors")
+    unknown = [row for row in rows if row not in ROWS]
+    if unknown or not rows:
+        raise ValueError(f"--rows {list(rows)}: choose among {list(ROWS)}")
     cfg = compose("edit", overrides)
-    spp = {row: row_spp(cfg, row) for row in ROWS}
-    records = measure(cfg, scales, ROWS, max_views, progress, view_ids)
-    summary = summarise(records, scales, ROWS, tolerance)
+    spp = {row: row_spp(cfg, row) for row in rows}
+    records = measure(cfg, scales, tuple(rows), max_views, progress, view_ids)
+    summary = summarise(records, scales, tuple(rows), tolerance)
     return {
         "summary": {"each row at its configured samples per pixel and at 4x them": headline(summary, spp, tolerance)},
         "row_spp": spp,
         "scoring_layer": str(cfg.scoring.layer),
         "guide": bool(cfg.scoring.guide),
         "oracle_paths": int(cfg.oracle.paths),
+        "oracle_psnr": str(cfg.oracle.psnr),
         "tolerance_db": tolerance,
         "scales": list(scales),
         "views": len({r["view"] for r in records}),
@@ -182,11 +200,12 @@ def main(argv=None) -> None:
     p.add_argument("--tolerance", type=float, default=0.1, help="dB a converged row may move at 4x the samples")
     p.add_argument("--max-views", type=int, default=None, help="the first N test views only")
     p.add_argument("--views", nargs="*", default=None, help="these test views only (scene/view ids)")
+    p.add_argument("--rows", nargs="+", default=list(ROWS), help=f"the rows to measure (default all: {' '.join(ROWS)})")
     p.add_argument("--out", default="reports/bench/scoring_convergence.json", help="JSON to write (PNG beside it)")
     p.add_argument("--override", nargs="*", default=[], help="more `edit` config overrides (light_path=...)")
     a = p.parse_args(argv)
     try:
-        report = run(list(a.override), list(a.scale), a.tolerance, a.max_views, view_ids=a.views)
+        report = run(list(a.override), list(a.scale), a.tolerance, a.max_views, view_ids=a.views, rows=tuple(a.rows))
     except ValueError as exc:
         p.error(str(exc))
     out = Path(a.out)

@@ -11,7 +11,7 @@ from __future__ import annotations
 import numpy as np
 import torch
 
-from pipeline.metrics.image import psnr_tonemapped, ssim_tonemapped
+from pipeline.metrics.image import psnr_tonemapped, ssim_tonemapped, tonemap
 from pipeline.metrics.lighting import log_l1
 
 SCORES = ("psnr", "ssim", "log_l1")
@@ -35,6 +35,22 @@ def case_scores(
         "ssim": ssim_tonemapped(a.reshape(H, W, 3).numpy(), b.reshape(H, W, 3).numpy(), scale, mask.reshape(H, W)),
         "log_l1": float(log_l1(pred64, target64, s)),
     }
+
+
+def psnr_decorrelated(half_a: torch.Tensor, half_b: torch.Tensor, target: torch.Tensor, scale: float) -> float:
+    """PSNR (dB, peak 1, capped at 120) of the converged render, estimated from two independent renders
+    half_a, half_b (M, 3) of the same pixels (HDR radiance; independent samples, same expectation) against
+    target (M, 3), with `tonemap` at the photo's mean `scale`.
+
+    The squared error of one noisy render is the converged render's plus the render's variance; the product
+    of the two renders' errors, mean of (T(a) - T(g)) (T(b) - T(g)), has the converged render's squared
+    error as its expectation, the variance gone (a and b independent). The tone map's curvature leaves a
+    term of the variance times the error itself, small where the error is. Averaged over a case's pixels
+    the product is positive; where it is not (an exact match within noise), the cap applies."""
+    s = torch.full((len(target),), float(scale), dtype=torch.float64)
+    ref = tonemap(target.double(), s)
+    product = (tonemap(half_a.double(), s) - ref) * (tonemap(half_b.double(), s) - ref)
+    return float(-10 * torch.log10(product.mean().clamp(min=1e-12)))
 
 
 def noise_floor_psnr(target: torch.Tensor, stderr: torch.Tensor, scale: float) -> float:

@@ -12,9 +12,8 @@ from pipeline.ops.camera import RAY_OFFSET_M, backproject_views
 
 
 class ScoringLayer:
-    """spp: samples per pixel; chunk: samples per radiance call (bounds memory)."""
-
-    estimator = "importance"  # BRDF importance sampling, as `MCRenderLayer(estimator="importance")`
+    """spp: samples per pixel; chunk: samples per radiance call (bounds memory). Samples the BRDF by
+    importance, as `MCRenderLayer(estimator="importance")`."""
 
     def __init__(self, spp: int, chunk: int = 1 << 16):
         if spp < 1:

@@ -18,7 +18,12 @@ object case):
 - `nearest_probe`: the ground-truth free-point probe nearest to the case as a distant environment map
   (the best a single environment map can do, given the true light at one point);
 - `oracle`: Mitsuba's incident radiance for every sample ray (`data.synth.oracle`, `oracle.paths` path
-  samples each), on the ground-truth G-buffers: validates the evaluation itself.
+  samples each), on the ground-truth G-buffers: validates the evaluation itself. Its light is itself a
+  Monte Carlo estimate (Mitsuba's paths), so its noise does not fall with the directions as the other
+  rows' does; with `oracle.psnr: decorrelated` it renders two independent halves of its samples and its
+  PSNR is the converged render's, estimated from the product of the halves' errors
+  (`metrics.insertion.psnr_decorrelated`); its other scores and its figure use the halves' mean, and
+  `psnr_with_noise` keeps the plain PSNR of that mean.
 Objects bring their own exact G-buffers in every row; edits apply the new material to the predicted
 G-buffers (rows on predictions) or the ground truth (`lightnet_gt_gbuffers`, `oracle`). Objects are
 placed where they truly are (their ground-truth G-buffers) in every row, so the LightNet row measures the
@@ -48,7 +53,7 @@ from pipeline.data.synth.cases import InsertedObject, MaterialEdit
 from pipeline.data.synth.oracle import MitsubaOracle
 from pipeline.data.synth.scene import Room
 from pipeline.metrics.bootstrap import paired_bootstrap
-from pipeline.metrics.insertion import HIGHER_IS_BETTER, SCORES, case_scores, noise_floor_psnr
+from pipeline.metrics.insertion import HIGHER_IS_BETTER, SCORES, case_scores, noise_floor_psnr, psnr_decorrelated
 from pipeline.models.insertion import (
     composite_gbuffer,
     composite_image,
@@ -69,6 +74,17 @@ from pipeline.systems.lighting_baselines import constant_light, mean_training_ra
 ROWS = ("lightnet", "lightnet_gt_gbuffers", "constant", "scaled_constant", "nearest_probe", "oracle")
 GUIDED = ("nearest_probe", "oracle")  # rows whose light is sharp and cheap to query: sampled with a light guide
 FIGURE_ROWS = ("lightnet", "lightnet_gt_gbuffers", "scaled_constant", "nearest_probe", "oracle")
+NOISY_LIGHT = ("oracle",)  # rows whose light is itself a Monte Carlo estimate
+ORACLE_PSNR = ("decorrelated", "plain")
+
+
+def halves(cfg: DictConfig, row: str) -> int:
+    """Independent renders a row's samples are split into: 2 for a noisy-light row scored by the
+    decorrelated PSNR (`oracle.psnr`), else 1."""
+    kind = str(cfg.oracle.get("psnr", "plain"))
+    if kind not in ORACLE_PSNR:
+        raise ValueError(f"oracle.psnr={kind!r}: choose one of {ORACLE_PSNR}")
+    return 2 if row in NOISY_LIGHT and kind == "decorrelated" else 1
 
 
 def case_centre(case: case_io.Case, gt: dict, fov: float, w2v: np.ndarray) -> torch.Tensor:
@@ -114,7 +130,7 @@ def score_view(ctx: dict, cases: list[case_io.Case], cfg: DictConfig, rows: tupl
         centre = case_centre(case, gt, fov, ctx["w2v"])
         probe = int(torch.argmin((free.position - centre).norm(dim=-1)))
         probe_map = free.radiance[probe : probe + 1]
-        guide = probe_guide(probe_map) if cfg.scoring.guide and cfg.scoring.layer == "converged" else None
+        guide = probe_guide(probe_map, cfg)
         rows_light = {
             **lights,
             "nearest_probe": lambda idx, o, wi, b, m=probe_map: sphere_lookup(m, torch.zeros_like(b), wi),
@@ -124,28 +140,38 @@ def score_view(ctx: dict, cases: list[case_io.Case], cfg: DictConfig, rows: tupl
         seed_of_case = case_seed(seed, len(out))
         for row in rows:
             shading = shade_gt if row in ("lightnet_gt_gbuffers", "oracle") else shade_pred
-            layer = ctx["layers"][row]
+            layer = ctx["layers"][row]  # at the row's samples over its number of halves
             t0 = time.perf_counter()
-            with torch.no_grad():
-                renders[row] = render_case(
-                    layer,
-                    shading,
-                    fov,
-                    case.pixel,
-                    rows_light[row],
-                    seed_of_case,
-                    guide if row in GUIDED else None,
-                )
+            with torch.no_grad():  # the halves' seeds: the case's, then the next (no other case's)
+                parts = [
+                    render_case(
+                        layer,
+                        shading,
+                        fov,
+                        case.pixel,
+                        rows_light[row],
+                        seed_of_case + k,
+                        guide if row in GUIDED else None,
+                    )
+                    for k in range(halves(cfg, row))
+                ]
+            renders[row] = torch.stack(parts).mean(0)
             seconds[row] = time.perf_counter() - t0
             scores[row] = case_scores(renders[row], case.radiance, photo, case.pixel, float(scale))
+            if len(parts) == 2:
+                scores[row]["psnr_with_noise"] = scores[row]["psnr"]
+                scores[row]["psnr"] = psnr_decorrelated(*parts, case.radiance, float(scale))
         scores["ground_truth"] = {"noise_floor_psnr": noise_floor_psnr(case.radiance, case.stderr, float(scale))}
         out.append({"case": case, "rows": scores, "renders": renders, "seconds": seconds})
     return out
 
 
-def probe_guide(probe_map: torch.Tensor) -> SphereGuide | None:
-    """The light guide of the sharp rows: the nearest ground-truth probe's map (the nearest-probe row's
-    own light, and close to the oracle's light at the case), or None if the map holds no energy."""
+def probe_guide(probe_map: torch.Tensor, cfg: DictConfig) -> SphereGuide | None:
+    """The light guide of the sharp rows: a distant map (1, rows, cols, 3), for the stage the nearest
+    ground-truth probe's (the nearest-probe row's own light, and close to the oracle's light at the case);
+    None if the map holds no energy or the scoring takes no guide (`scoring.guide`, `scoring.layer`)."""
+    if not (cfg.scoring.guide and cfg.scoring.layer == "converged"):
+        return None
     return SphereGuide(probe_map) if float(probe_map.sum()) > 0 else None
 
 
@@ -168,6 +194,8 @@ def summarise(records: list[dict], resamples: int, seed: int, rows: tuple = ROWS
         for row in rows:
             for s in SCORES:
                 metrics[f"{group}/{row}/{s}"] = float(np.mean([r[f"{row}/{s}"] for r in rs]))
+            if f"{row}/psnr_with_noise" in rs[0]:  # a row scored in halves: its plain PSNR beside
+                metrics[f"{group}/{row}/psnr_with_noise"] = float(np.mean([r[f"{row}/psnr_with_noise"] for r in rs]))
         # what an exact render would score against this ground truth, given the truth's own noise
         metrics[f"{group}/ground_truth/noise_floor_psnr"] = float(
             np.mean([r["ground_truth/noise_floor_psnr"] for r in rs])
@@ -264,8 +292,18 @@ def scoring_layer(cfg: DictConfig, spp: int | None = None) -> MCRenderLayer | Sc
 
 
 def scoring_layers(cfg: DictConfig, scale: int = 1) -> dict[str, MCRenderLayer]:
-    """Every row's render layer ({row: layer}), at `row_spp` x `scale` samples per pixel."""
-    return {row: scoring_layer(cfg, row_spp(cfg, row) * int(scale)) for row in ROWS}
+    """Every row's render layer ({row: layer}), at `row_spp` x `scale` samples per pixel over the row's
+    `halves` (each half renders its share)."""
+    layers = {}
+    for row in ROWS:
+        n, parts = row_spp(cfg, row) * int(scale), halves(cfg, row)
+        if n % parts:
+            raise ValueError(
+                f"scoring.row_spp.{row}={row_spp(cfg, row)}: oracle.psnr=decorrelated renders two independent "
+                "halves; give an even count"
+            )
+        layers[row] = scoring_layer(cfg, n // parts)
+    return layers
 
 
 def stage_setup(cfg: DictConfig) -> dict:
