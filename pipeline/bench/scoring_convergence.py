@@ -26,7 +26,7 @@ from tqdm import tqdm
 
 from pipeline.bench.common import write_report
 from pipeline.metrics.bootstrap import paired_bootstrap
-from pipeline.systems.insertion_scoring import ROWS, case_group
+from pipeline.systems.insertion_scoring import PSNR_VARIANTS, ROWS, case_group
 
 
 def measure(
@@ -37,9 +37,10 @@ def measure(
     progress: bool = True,
     view_ids: list[str] | None = None,
 ) -> list[dict]:
-    """One record per case: {view, class, psnr: {scale: {row: dB}}} (and `psnr_with_noise` alike for the
-    rows scored in halves, `insertion_scoring.halves`), every row rendered at each `scale` times its
-    configured samples per pixel (`insertion_scoring.row_spp`) with the same seeds (the stage's)."""
+    """One record per case: {view, class, psnr: {scale: {row: dB}}} (and `psnr_with_noise`,
+    `psnr_decorrelated` alike for the rows scored in parts, `insertion_scoring.parts`), every row
+    rendered at each `scale` times its configured samples per pixel (`insertion_scoring.row_spp`) with
+    the same seeds (the stage's)."""
     from pipeline.systems import insertion_scoring
 
     shared = insertion_scoring.stage_setup(cfg)
@@ -59,11 +60,10 @@ def measure(
             scored = insertion_scoring.score_view({**ctx, "layers": layer}, cases, cfg, rows)
             for rec, res in zip(per_case, scored, strict=True):
                 rec["psnr"][n] = {row: res["rows"][row]["psnr"] for row in rows}
-                plain = {
-                    row: res["rows"][row]["psnr_with_noise"] for row in rows if "psnr_with_noise" in res["rows"][row]
-                }
-                if plain:  # rows scored in halves: their plain PSNR too (what the noise costs them)
-                    rec.setdefault("psnr_with_noise", {})[n] = plain
+                for variant in PSNR_VARIANTS:  # rows scored in parts: their other PSNRs too
+                    other = {row: res["rows"][row][variant] for row in rows if variant in res["rows"][row]}
+                    if other:
+                        rec.setdefault(variant, {})[n] = other
         records += per_case
     if not records:
         raise ValueError(f"{cfg.data_root}: the {cfg.split} views' case files list no case")
@@ -81,17 +81,13 @@ def summarise(records: list[dict], scales: list[int], rows: tuple, tolerance: fl
         entry = {"cases": len(rs), "rows": {}}
         for row in rows:
             means = {str(n): float(np.mean([r["psnr"][n][row] for r in rs])) for n in scales}
-            changes = {}
-            for n in scales:
-                if 4 * n in scales:
-                    diff = [r["psnr"][4 * n][row] - r["psnr"][n][row] for r in rs]
-                    ci = paired_bootstrap(diff, resamples, 0, groups=[r["view"] for r in rs])
-                    changes[str(n)] = {"diff": ci["diff"], "lo": ci["lo"], "hi": ci["hi"]}
-            entry["rows"][row] = {"mean_psnr": means, "change_at_4x": changes}
-            if all(row in r.get("psnr_with_noise", {}).get(scales[0], {}) for r in rs):
-                entry["rows"][row]["mean_psnr_with_noise"] = {
-                    str(n): float(np.mean([r["psnr_with_noise"][n][row] for r in rs])) for n in scales
-                }
+            entry["rows"][row] = {"mean_psnr": means, "change_at_4x": _changes(rs, scales, row, "psnr", resamples)}
+            for variant in PSNR_VARIANTS:
+                if all(row in r.get(variant, {}).get(scales[0], {}) for r in rs):
+                    entry["rows"][row][f"mean_{variant}"] = {
+                        str(n): float(np.mean([r[variant][n][row] for r in rs])) for n in scales
+                    }
+                    entry["rows"][row][f"{variant}_change_at_4x"] = _changes(rs, scales, row, variant, resamples)
         out["classes"][label] = entry
     for row in rows:
         ok = [
@@ -102,6 +98,18 @@ def summarise(records: list[dict], scales: list[int], rows: tuple, tolerance: fl
         ]
         out["converged_scale"][row] = min(ok) if ok else None
     return out
+
+
+def _changes(rs: list[dict], scales: list[int], row: str, key: str, resamples: int = 2000) -> dict:
+    """{scale: {diff, lo, hi}}: the mean paired change of `key` (a PSNR, dB) from each scale to 4x it, with
+    its bootstrap interval over views, for every scale whose 4x was measured."""
+    changes = {}
+    for n in scales:
+        if 4 * n in scales:
+            diff = [r[key][4 * n][row] - r[key][n][row] for r in rs]
+            ci = paired_bootstrap(diff, resamples, 0, groups=[r["view"] for r in rs])
+            changes[str(n)] = {"diff": ci["diff"], "lo": ci["lo"], "hi": ci["hi"]}
+    return changes
 
 
 def headline(summary: dict, spp: dict[str, int], tolerance: float) -> list[dict]:
@@ -130,6 +138,9 @@ def headline(summary: dict, spp: dict[str, int], tolerance: float) -> list[dict]
     return out
 
 
+OTHER_LINES = (("psnr_with_noise", "x--", "plain"), ("psnr_decorrelated", "+:", "decorrelated"))
+
+
 def plot(report: dict, path: Path) -> None:
     labels = list(report["classes"])
     fig = Figure(figsize=(3.0 * len(labels), 3.2))
@@ -139,9 +150,10 @@ def plot(report: dict, path: Path) -> None:
         entry = report["classes"][label]
         for row, r in entry["rows"].items():
             line = ax.plot(scales, [r["mean_psnr"][str(n)] for n in scales], "o-", ms=3, label=row)[0]
-            if "mean_psnr_with_noise" in r:  # the same renders' plain PSNR, noise included
-                plain = [r["mean_psnr_with_noise"][str(n)] for n in scales]
-                ax.plot(scales, plain, "x--", ms=3, color=line.get_color(), label=f"{row}, plain PSNR")
+            for variant, style, name in OTHER_LINES:
+                if f"mean_{variant}" in r:  # the same renders' other PSNRs (plain: noise included)
+                    other = [r[f"mean_{variant}"][str(n)] for n in scales]
+                    ax.plot(scales, other, style, ms=3, color=line.get_color(), label=f"{row}, {name} PSNR")
         ax.set_xscale("log", base=2)
         ax.set_xticks(scales)
         ax.set_xticklabels([f"{n}x" for n in scales], fontsize=6)

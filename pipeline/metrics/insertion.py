@@ -45,12 +45,48 @@ def psnr_decorrelated(half_a: torch.Tensor, half_b: torch.Tensor, target: torch.
     The squared error of one noisy render is the converged render's plus the render's variance; the product
     of the two renders' errors, mean of (T(a) - T(g)) (T(b) - T(g)), has the converged render's squared
     error as its expectation, the variance gone (a and b independent). The tone map's curvature leaves a
-    term of the variance times the error itself, small where the error is. Averaged over a case's pixels
-    the product is positive; where it is not (an exact match within noise), the cap applies."""
+    term of the variance times the error itself, small where the error is (`psnr_extrapolated` removes
+    it). Averaged over a case's pixels the product is positive; where it is not (an exact match within
+    noise), the cap applies."""
+    return _psnr(_error_product(half_a, half_b, target, scale))
+
+
+def psnr_extrapolated(quarters: list[torch.Tensor], target: torch.Tensor, scale: float) -> tuple[float, float]:
+    """(extrapolated, decorrelated) PSNR (dB, capped at 120) of the converged render from four independent
+    renders `quarters` (each (M, 3), a quarter of the samples) of the same pixels against target (M, 3).
+
+    On a render of n samples the tone map's expectation is off by its curvature times the variance,
+    E T(a_n) = T(mu) + c / n + O(1/n^2): the decorrelated product of two halves is biased by that term
+    times the error (and its square). Each half is extrapolated to infinite samples from its two quarters
+    q1, q2 (Richardson in 1/n): 2 T((q1 + q2) / 2) - (T(q1) + T(q2)) / 2 has expectation T(mu) + O(1/n^2).
+    The product of the two halves' extrapolated errors against T(g) (independent: disjoint quarters),
+    averaged over the three ways to split the quarters in two, estimates the converged render's squared
+    error without the first-order term, at no cost in samples. The decorrelated PSNR is that of the
+    products of the halves' plain means (`psnr_decorrelated`) over the same splits."""
+    if len(quarters) != 4:
+        raise ValueError(f"psnr_extrapolated takes 4 independent renders, got {len(quarters)}")
     s = torch.full((len(target),), float(scale), dtype=torch.float64)
     ref = tonemap(target.double(), s)
-    product = (tonemap(half_a.double(), s) - ref) * (tonemap(half_b.double(), s) - ref)
-    return float(-10 * torch.log10(product.mean().clamp(min=1e-12)))
+    q = [x.double() for x in quarters]
+    tq = [tonemap(x, s) for x in q]
+    extrapolated, decorrelated = [], []
+    for (a, b), (c, e) in (((0, 1), (2, 3)), ((0, 2), (1, 3)), ((0, 3), (1, 2))):
+        half_1, half_2 = tonemap((q[a] + q[b]) / 2, s), tonemap((q[c] + q[e]) / 2, s)
+        ext_1, ext_2 = 2 * half_1 - (tq[a] + tq[b]) / 2, 2 * half_2 - (tq[c] + tq[e]) / 2
+        extrapolated.append(float(((ext_1 - ref) * (ext_2 - ref)).mean()))
+        decorrelated.append(float(((half_1 - ref) * (half_2 - ref)).mean()))
+    return _psnr(float(np.mean(extrapolated))), _psnr(float(np.mean(decorrelated)))
+
+
+def _error_product(a: torch.Tensor, b: torch.Tensor, target: torch.Tensor, scale: float) -> float:
+    """Mean over pixels and channels of (T(a) - T(g)) (T(b) - T(g)), T the tone map at `scale`."""
+    s = torch.full((len(target),), float(scale), dtype=torch.float64)
+    ref = tonemap(target.double(), s)
+    return float(((tonemap(a.double(), s) - ref) * (tonemap(b.double(), s) - ref)).mean())
+
+
+def _psnr(mse: float) -> float:
+    return float(-10 * np.log10(max(mse, 1e-12)))
 
 
 def noise_floor_psnr(target: torch.Tensor, stderr: torch.Tensor, scale: float) -> float:

@@ -20,10 +20,12 @@ object case):
 - `oracle`: Mitsuba's incident radiance for every sample ray (`data.synth.oracle`, `oracle.paths` path
   samples each), on the ground-truth G-buffers: validates the evaluation itself. Its light is itself a
   Monte Carlo estimate (Mitsuba's paths), so its noise does not fall with the directions as the other
-  rows' does; with `oracle.psnr: decorrelated` it renders two independent halves of its samples and its
-  PSNR is the converged render's, estimated from the product of the halves' errors
-  (`metrics.insertion.psnr_decorrelated`); its other scores and its figure use the halves' mean, and
-  `psnr_with_noise` keeps the plain PSNR of that mean.
+  rows' does. With `oracle.psnr: extrapolated` it renders four independent quarters of its samples and
+  its PSNR is the converged render's: each half's tone-mapped render extrapolated to infinite samples
+  from its two quarters, and the product of the two halves' errors (`metrics.insertion.psnr_extrapolated`;
+  `psnr_decorrelated` keeps the product of the halves' plain means, which `oracle.psnr: decorrelated`
+  renders alone); its other scores and its figure use the parts' mean, and `psnr_with_noise` keeps the
+  plain PSNR of that mean.
 Objects bring their own exact G-buffers in every row; edits apply the new material to the predicted
 G-buffers (rows on predictions) or the ground truth (`lightnet_gt_gbuffers`, `oracle`). Objects are
 placed where they truly are (their ground-truth G-buffers) in every row, so the LightNet row measures the
@@ -53,7 +55,14 @@ from pipeline.data.synth.cases import InsertedObject, MaterialEdit
 from pipeline.data.synth.oracle import MitsubaOracle
 from pipeline.data.synth.scene import Room
 from pipeline.metrics.bootstrap import paired_bootstrap
-from pipeline.metrics.insertion import HIGHER_IS_BETTER, SCORES, case_scores, noise_floor_psnr, psnr_decorrelated
+from pipeline.metrics.insertion import (
+    HIGHER_IS_BETTER,
+    SCORES,
+    case_scores,
+    noise_floor_psnr,
+    psnr_decorrelated,
+    psnr_extrapolated,
+)
 from pipeline.models.insertion import (
     composite_gbuffer,
     composite_image,
@@ -75,16 +84,17 @@ ROWS = ("lightnet", "lightnet_gt_gbuffers", "constant", "scaled_constant", "near
 GUIDED = ("nearest_probe", "oracle")  # rows whose light is sharp and cheap to query: sampled with a light guide
 FIGURE_ROWS = ("lightnet", "lightnet_gt_gbuffers", "scaled_constant", "nearest_probe", "oracle")
 NOISY_LIGHT = ("oracle",)  # rows whose light is itself a Monte Carlo estimate
-ORACLE_PSNR = ("decorrelated", "plain")
+ORACLE_PSNR = {"extrapolated": 4, "decorrelated": 2, "plain": 1}  # the independent renders each scores from
+PSNR_VARIANTS = ("psnr_with_noise", "psnr_decorrelated")  # the other PSNRs of a row scored in parts
 
 
-def halves(cfg: DictConfig, row: str) -> int:
-    """Independent renders a row's samples are split into: 2 for a noisy-light row scored by the
-    decorrelated PSNR (`oracle.psnr`), else 1."""
+def parts(cfg: DictConfig, row: str) -> int:
+    """Independent renders a row's samples are split into: for a noisy-light row, 4 under the
+    extrapolated PSNR and 2 under the decorrelated one (`oracle.psnr`); else 1."""
     kind = str(cfg.oracle.get("psnr", "plain"))
     if kind not in ORACLE_PSNR:
-        raise ValueError(f"oracle.psnr={kind!r}: choose one of {ORACLE_PSNR}")
-    return 2 if row in NOISY_LIGHT and kind == "decorrelated" else 1
+        raise ValueError(f"oracle.psnr={kind!r}: choose one of {list(ORACLE_PSNR)}")
+    return ORACLE_PSNR[kind] if row in NOISY_LIGHT else 1
 
 
 def case_centre(case: case_io.Case, gt: dict, fov: float, w2v: np.ndarray) -> torch.Tensor:
@@ -140,10 +150,10 @@ def score_view(ctx: dict, cases: list[case_io.Case], cfg: DictConfig, rows: tupl
         seed_of_case = case_seed(seed, len(out))
         for row in rows:
             shading = shade_gt if row in ("lightnet_gt_gbuffers", "oracle") else shade_pred
-            layer = ctx["layers"][row]  # at the row's samples over its number of halves
+            layer = ctx["layers"][row]  # at the row's samples over its number of parts
             t0 = time.perf_counter()
-            with torch.no_grad():  # the halves' seeds: the case's, then the next (no other case's)
-                parts = [
+            with torch.no_grad():  # the parts' seeds: the case's, then the next ones (no other case's)
+                renders_k = [
                     render_case(
                         layer,
                         shading,
@@ -153,17 +163,27 @@ def score_view(ctx: dict, cases: list[case_io.Case], cfg: DictConfig, rows: tupl
                         seed_of_case + k,
                         guide if row in GUIDED else None,
                     )
-                    for k in range(halves(cfg, row))
+                    for k in range(parts(cfg, row))
                 ]
-            renders[row] = torch.stack(parts).mean(0)
+            renders[row] = torch.stack(renders_k).mean(0)
             seconds[row] = time.perf_counter() - t0
             scores[row] = case_scores(renders[row], case.radiance, photo, case.pixel, float(scale))
-            if len(parts) == 2:
-                scores[row]["psnr_with_noise"] = scores[row]["psnr"]
-                scores[row]["psnr"] = psnr_decorrelated(*parts, case.radiance, float(scale))
+            scores[row].update(parted_psnr(renders_k, case.radiance, float(scale), scores[row]["psnr"]))
         scores["ground_truth"] = {"noise_floor_psnr": noise_floor_psnr(case.radiance, case.stderr, float(scale))}
         out.append({"case": case, "rows": scores, "renders": renders, "seconds": seconds})
     return out
+
+
+def parted_psnr(renders: list[torch.Tensor], target: torch.Tensor, scale: float, plain: float) -> dict:
+    """The PSNR scores of a row rendered in independent parts (each (M, 3)): {} for one part; else
+    `psnr` from the parts without their noise (`metrics.insertion`: decorrelated from 2, extrapolated from
+    4, which also keeps `psnr_decorrelated`), and `psnr_with_noise`, the `plain` PSNR of their mean."""
+    if len(renders) == 1:
+        return {}
+    if len(renders) == 2:
+        return {"psnr": psnr_decorrelated(*renders, target, scale), "psnr_with_noise": plain}
+    extrapolated, decorrelated = psnr_extrapolated(renders, target, scale)
+    return {"psnr": extrapolated, "psnr_decorrelated": decorrelated, "psnr_with_noise": plain}
 
 
 def probe_guide(probe_map: torch.Tensor, cfg: DictConfig) -> SphereGuide | None:
@@ -194,8 +214,9 @@ def summarise(records: list[dict], resamples: int, seed: int, rows: tuple = ROWS
         for row in rows:
             for s in SCORES:
                 metrics[f"{group}/{row}/{s}"] = float(np.mean([r[f"{row}/{s}"] for r in rs]))
-            if f"{row}/psnr_with_noise" in rs[0]:  # a row scored in halves: its plain PSNR beside
-                metrics[f"{group}/{row}/psnr_with_noise"] = float(np.mean([r[f"{row}/psnr_with_noise"] for r in rs]))
+            for variant in PSNR_VARIANTS:  # a row scored in parts: its other PSNRs beside
+                if f"{row}/{variant}" in rs[0]:
+                    metrics[f"{group}/{row}/{variant}"] = float(np.mean([r[f"{row}/{variant}"] for r in rs]))
         # what an exact render would score against this ground truth, given the truth's own noise
         metrics[f"{group}/ground_truth/noise_floor_psnr"] = float(
             np.mean([r["ground_truth/noise_floor_psnr"] for r in rs])
@@ -293,16 +314,16 @@ def scoring_layer(cfg: DictConfig, spp: int | None = None) -> MCRenderLayer | Sc
 
 def scoring_layers(cfg: DictConfig, scale: int = 1) -> dict[str, MCRenderLayer]:
     """Every row's render layer ({row: layer}), at `row_spp` x `scale` samples per pixel over the row's
-    `halves` (each half renders its share)."""
+    `parts` (each part renders its share)."""
     layers = {}
     for row in ROWS:
-        n, parts = row_spp(cfg, row) * int(scale), halves(cfg, row)
-        if n % parts:
+        n, k = row_spp(cfg, row) * int(scale), parts(cfg, row)
+        if n % k:
             raise ValueError(
-                f"scoring.row_spp.{row}={row_spp(cfg, row)}: oracle.psnr=decorrelated renders two independent "
-                "halves; give an even count"
+                f"scoring.row_spp.{row}={row_spp(cfg, row)}: oracle.psnr={cfg.oracle.psnr} renders {k} "
+                f"independent parts; give a multiple of {k}"
             )
-        layers[row] = scoring_layer(cfg, n // parts)
+        layers[row] = scoring_layer(cfg, n // k)
     return layers
 
 

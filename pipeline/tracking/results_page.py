@@ -246,8 +246,10 @@ def section_edit(reports: Path, facts: dict | None = None) -> list[str]:
         f"From `{shown(reports, path)}` and `reports/edit/timings.json`: PSNR (dB) on the case's pixels against",
         "Mitsuba's render of the same case. Differences are paired by case, with the stage's 95 % bootstrap",
         "interval over views; a difference whose interval holds 0 is no difference. The oracle's light (Mitsuba's",
-        "paths for each sample ray) is noisy itself: its PSNR is the converged render's, estimated from two",
-        "independent halves of its samples (`oracle.psnr: decorrelated`); its plain PSNR, noise included, beside.",
+        "paths for each sample ray) is noisy itself: its PSNR is the converged render's, estimated from independent",
+        "parts of its samples (`oracle.psnr`: two halves, each extrapolated to infinite samples from its quarters,",
+        "the product of their errors); beside, the product of the halves' errors alone (decorrelated) and its",
+        "plain PSNR, noise included.",
         "",
     ]
     groups = [("insert", g) for g in INSERT_GROUPS] + sorted(
@@ -257,10 +259,9 @@ def section_edit(reports: Path, facts: dict | None = None) -> list[str]:
     rows = [["cases", *(num(m.get(f"{kind}/{g}/cases")) for kind, g in groups)]]
     for who in EDIT_ROWS:
         rows.append([who, *(num(m.get(f"{kind}/{g}/{who}/psnr")) for kind, g in groups)])
-        if any(f"{kind}/{g}/{who}/psnr_with_noise" in m for kind, g in groups):  # a row scored in halves
-            rows.append(
-                [f"{who}, plain PSNR", *(num(m.get(f"{kind}/{g}/{who}/psnr_with_noise")) for kind, g in groups)]
-            )
+        for variant, name in (("psnr_decorrelated", "decorrelated"), ("psnr_with_noise", "plain")):
+            if any(f"{kind}/{g}/{who}/{variant}" in m for kind, g in groups):  # a row scored in parts
+                rows.append([f"{who}, {name} PSNR", *(num(m.get(f"{kind}/{g}/{who}/{variant}")) for kind, g in groups)])
     rows.append(["noise floor", *(num(m.get(f"{kind}/{g}/ground_truth/noise_floor_psnr")) for kind, g in groups)])
     lines += md_table(header, rows)
     lines += ["", "LightNet minus each other row, PSNR (dB):", ""]
