@@ -320,10 +320,12 @@ def insert_object(
     seed: int = 0,
     material_path=DEFAULT_MATERIAL,
     light_path=DEFAULT_LIGHT,
+    shadows: bool = True,
 ) -> list[Path]:
     """`invrender insert`: objects, each resting on the predicted surface at its pixel `at` ("row,col"),
-    lit by LightNet through the MC render layer, composited into the photo; writes <out>.png and <out>.exr.
-    Every option is one value (all objects) or a list of one per `at` (`insertion_objects`)."""
+    lit by LightNet through the MC render layer, composited into the photo with (`shadows`) their shadows
+    and bounce light on the room; writes <out>.png and <out>.exr. Every option is one value (all objects)
+    or a list of one per `at` (`insertion_objects`)."""
     from pipeline.models.insertion import insert_into
 
     listed = lambda v: v if isinstance(v, list) else ([v] if v is not None else None)  # noqa: E731
@@ -332,7 +334,7 @@ def insert_object(
         raise EditError(f"--spp {spp}: must be >= 1")
     objects = insertion_objects(listed(at), listed(kind), listed(scale), listed(turn), listed(material))
     view = _prepare_photo(photo, material_path, light_path, fov)
-    result, _ = insert_into(view, objects, spp, seed)
+    result, _ = insert_into(view, objects, spp, seed, shadows)
     return _write_result(result.numpy(), png, exr, Path(photo).suffix.lower() == ".exr")
 
 
@@ -500,7 +502,7 @@ def _render_kwargs(args) -> dict:
 
 def _insert(args) -> int:
     kwargs = {"kind": args.object, "material": args.material, "scale": args.scale, "turn": args.turn}
-    kwargs.update(_render_kwargs(args))
+    kwargs.update(_render_kwargs(args), shadows=args.shadows)
     print("\n".join(str(p) for p in insert_object(args.photo, args.at, args.out, **kwargs)))
     return 0
 
@@ -624,6 +626,13 @@ def main(argv: list[str] | None = None) -> int:
         type=float,
         action="append",
         help="degrees about the object's up axis (default 0): once or once per --at",
+    )
+    i.add_argument(
+        "--shadows",
+        action=argparse.BooleanOptionalAction,
+        default=True,
+        help="add the objects' shadows and bounce light on the room around them by differential rendering "
+        "(the predicted room near each object rendered with and without it; default: on)",
     )
     _add_render_args(i)
     i.set_defaults(func=_insert)

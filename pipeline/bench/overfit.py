@@ -23,7 +23,10 @@ the volume's opacity and the far field's share. A variant with the override `+be
 replaces the branch's image feature by a free vector per room (started at the room's image feature):
 whether the image encoder is what keeps the NeRF from memorising; `+bench.room_textures=true` does the
 same for the room-box branch's decoded textures (a free texture table per room), and
-`+bench.true_layout=true` gives the room-box branch each room's true box.
+`+bench.true_layout=true` gives the room-box branch each room's true box. `+bench.head_rates=fan_in`
+gives the weight of each hypernetwork head's last layer the stage's rate over its fan-in (its bias keeps
+the rate): Adam moves every weight by about the rate per step, so a generated parameter, a sum over the
+head's fan-in, moves by the rate times that fan-in's mean activation instead of by about the rate.
 Writes reports/bench/overfit.json (or `--name`) and a PNG of those curves against steps.
 """
 
@@ -241,6 +244,34 @@ def use_room_embedding(system, optimizer, plain) -> None:
     branch.encode = encode
 
 
+HEAD_RATES = ("fan_in",)
+
+
+def use_head_rates(system, optimizer, rule: str) -> dict:
+    """Suspect 1, per group: each hypernetwork head's last Linear weight (the NeRF branch's `hyper`) moved
+    to a param group of its own at the stage's rate over its fan-in (`rule` fan_in); every other parameter
+    keeps its group. Returns {group name: rate} for the report."""
+    from pipeline.models.light_net.hyper import HyperMLP
+
+    if rule not in HEAD_RATES:
+        raise ValueError(f"+bench.head_rates={rule!r}: choose one of {list(HEAD_RATES)}")
+    hyper = getattr(system.net.out_of_view, "hyper", None)
+    if not isinstance(hyper, HyperMLP):
+        raise ValueError("+bench.head_rates: the out-of-view branch has no hypernetwork (kind: nerf only)")
+    heads = [*hyper.heads, *(hyper.bias_heads if hyper.split_bias else [])]
+    lasts = [h[-1] if isinstance(h, torch.nn.Sequential) else h for h in heads]
+    moved = {id(last.weight) for last in lasts}
+    base = optimizer.param_groups[0]
+    rates = {}
+    for group in optimizer.param_groups:
+        group["params"] = [q for q in group["params"] if id(q) not in moved]
+    for k, last in enumerate(lasts):
+        rate = base["lr"] / last.in_features
+        optimizer.add_param_group({"params": [last.weight], "lr": rate})
+        rates[f"head {k} weight ({last.in_features} in)"] = rate
+    return rates
+
+
 def use_true_layout(system, plain, data_dir) -> None:
     """The room-box branch given each training room's true box (from its room file, `layout: gt`) instead
     of the one it estimates from the depth and normals: whether the box estimate limits memorising."""
@@ -368,6 +399,7 @@ def run(
         report["gbuffers"] = "ground_truth"
     for name, overrides in variants:
         for n in rooms:
+            extra = {}
             if network == "light":
                 system, optimizer, cfg = training_system("train_lighting", ["gbuffers=ground_truth", *overrides], seed)
                 loader, plain = rooms_batches(data_dir, n, int(cfg.batch_size))
@@ -378,6 +410,8 @@ def run(
                     use_true_layout(system, plain, data_dir)
                 if OmegaConf.select(cfg, "bench.room_textures"):
                     use_room_textures(system, optimizer, plain)
+                if OmegaConf.select(cfg, "bench.head_rates"):
+                    extra["head_rates"] = use_head_rates(system, optimizer, str(cfg.bench.head_rates))
             else:
                 system, optimizer, cfg = training_system("train_material", overrides, seed)
                 loader, plain = rooms_batches(data_dir, n, int(cfg.batch_size), lighting=False)
@@ -389,7 +423,7 @@ def run(
             )
             if network == "light":
                 row["walls"] = wall_agreement(system, plain, source_root(data_dir))
-            report["runs"].append({"variant": name, "overrides": overrides, "rooms": n, "clip": clip, **row})
+            report["runs"].append({"variant": name, "overrides": overrides, "rooms": n, "clip": clip, **extra, **row})
             if on_run is not None:
                 on_run(report)
     return report

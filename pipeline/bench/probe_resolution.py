@@ -8,9 +8,11 @@ centre (in the room without the object; every texel the mean of a k x k stratifi
 inside it, as the training probes are), at the probes' resolution and finer ones, and renders the object
 under each map as a distant environment (the `edit` stage's `nearest_probe` lookup and per-case seeds)
 against Mitsuba's render of the case. The centre maps are rendered at `--spp` samples per pixel (default:
-the `edit` stage's oracle row's 256), and so are LightNet's rows compared with them: a sharp map at the
-stage's 16 spp would add the render's own Monte Carlo noise to the diffuse and glossy rows (a lamp one
-texel wide is hit by few of 16 directions), and the question here is the light, not the sample count.
+the `edit` stage's `scoring.spp`) with the stage's scoring layer, each map guiding its own samples as the
+stage's nearest-probe row is guided, and so are LightNet's rows compared with them (`*_fine`), so that
+rows compared here differ in their light, not their sample count; the stage's own rows keep their
+`scoring.row_spp`. Whether a count is converged for a sharp map is `bench.scoring_convergence`'s question
+(the stage's nearest-probe row needs 1024).
 
 - `centre_<rows>x<cols>` at the training probes' size: the ceiling the supervision sets, for a LightNet
   that reproduced its training targets exactly at the object's centre (no error of position either);

@@ -5,7 +5,8 @@ z-depth, roughness, metallic) at the pixels where it lies in front of the scene;
 material of a region and keeps its geometry. The changed pixels are re-rendered under an incident
 radiance callback and composited into the photo. The callback sees the scene *without* the object:
 LightNet traces its secondary rays (SSRT) against the scene's depth, as a new object would see the room
-(its own interreflection, the other objects' and the shadows they would cast on the room are not modelled).
+(its own interreflection and the other objects' light on it are not modelled). The shadows and bounce light
+objects cast on the room are added by differential rendering (`models.shadows`, `insert_into(shadows=True)`).
 Objects are spheres, snowmen or triangle meshes (`InsertedObject`), several in one insertion.
 
 All tensors are of one view: G-buffers depth (1, H, W) metres, normal/albedo (1, 3, H, W), material
@@ -23,6 +24,7 @@ import torch
 from pipeline.models.light_net.branches import image_scale
 from pipeline.models.material_net import predict_maps
 from pipeline.models.render_layer import MCRenderLayer, PointRadianceFn
+from pipeline.models.shadows import facing_camera, object_radiance, occlusion_light, proxy_pixels
 from pipeline.ops.camera import backproject, pixel_directions
 from pipeline.ops.meshes import place_mesh, raycast_mesh
 from pipeline.ops.primitives import LIFT_M, object_spheres, raycast_spheres
@@ -286,15 +288,17 @@ def _object_shape(view: PreparedView, obj: InsertedObject) -> Shape:
     return place_mesh(vertices, point.double(), n.double(), size, obj.turn, LIFT_M), faces
 
 
-def insert_into(view: PreparedView, objects: list[InsertedObject], spp: int, seed: int):
+def insert_into(view: PreparedView, objects: list[InsertedObject], spp: int, seed: int, shadows: bool = True):
     """Objects (`InsertedObject`) inserted into a `prepare_view` together, each pixel showing the nearest,
     rendered at `spp` under LightNet (which sees the room without them): (composited photo (H, W, 3), the
-    objects' pixels (M,)). An object seen nowhere (behind the scene, outside the view, or wholly behind
-    another object) is refused, naming it."""
+    objects' pixels (M,)). With `shadows`, the room around them also gets their shadows and bounce light
+    by differential rendering (`models.shadows`, at the same spp). An object seen nowhere (behind the
+    scene, outside the view, or wholly behind another object) is refused, naming it."""
     if not objects:
         raise InsertionError("--object: nothing to insert")
     gb, fov = view.pred, view.fov
-    found = object_gbuffer([_object_shape(view, obj) for obj in objects], gb["depth"][0], fov)
+    shapes = [_object_shape(view, obj) for obj in objects]
+    found = object_gbuffer(shapes, gb["depth"][0], fov)
     for k, obj in enumerate(objects):
         if found is None or not (found["shape"] == k).any():
             where = f"{obj.label} {obj.row},{obj.col}"
@@ -315,4 +319,24 @@ def insert_into(view: PreparedView, objects: list[InsertedObject], spp: int, see
     light = light_net_radiance(view.net, view.ctx_pred, gb, fov, seed)
     with torch.no_grad():
         rgb = render_case(MCRenderLayer(spp=spp), shading, fov, pixel, light, seed)
-    return composite_image(view.photo, pixel, rgb), pixel
+    photo = composite_image(view.photo, pixel, rgb)
+    if shadows:
+        photo = _with_shadows(view, photo, shapes, object_radiance(rgb, seen, len(objects)), pixel, spp, seed)
+    return photo, pixel
+
+
+def _with_shadows(view, photo, shapes, radiance, pixel, spp: int, seed: int) -> torch.Tensor:
+    """photo (H, W, 3) plus the objects' effect on the room around them (`models.shadows`): the difference
+    of the proxy's renders with and without them, the result clamped at 0 (a shadow darkens no pixel
+    below black)."""
+    gb, fov = view.pred, view.fov
+    proxy = proxy_pixels(gb["depth"][0], fov, shapes, pixel)
+    if not proxy.numel():
+        return photo
+    light = light_net_radiance(view.net, view.ctx_pred, gb, fov, seed + 2)  # its own out-of-view samples
+    blocked = occlusion_light(light, shapes, radiance, cast_shape)
+    with torch.no_grad():
+        delta = render_case(MCRenderLayer(spp=spp), facing_camera(gb, fov), fov, proxy, blocked, seed + 1)
+    flat = photo.reshape(-1, 3).clone()
+    flat[proxy] = (flat[proxy] + delta.to(flat.dtype)).clamp(min=0)
+    return flat.reshape(photo.shape)

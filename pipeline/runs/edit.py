@@ -7,7 +7,9 @@ rows (LightNet, the baselines, the oracle) and how each is rendered and scored:
 Writes `reports/edit/metrics.json` (means per material class and edit kind; LightNet minus every other
 row with a paired bootstrap interval that resamples views, whose cases share a photo and predictions,
 and a verdict: +1 better, -1 worse, 0 no difference or a single view; `scoring_spp/<row>`, each row's
-samples per pixel), `cases.csv` (every case and row), `timings.json`, `insertion.png` and `editing.png` (figure
+samples per pixel), `cases.csv` (every case and row: `<row>/psnr`, `<row>/ssim`, `<row>/log_l1`, and for the
+oracle, rendered in independent parts, `oracle/psnr_decorrelated` and `oracle/psnr_with_noise` beside its
+noise-free `oracle/psnr`), `timings.json`, `insertion.png` and `editing.png` (figure
 grids), all also to MLflow.
 """
 

@@ -208,3 +208,29 @@ def test_out_of_view_kinds_bench_runs_small(micro_root, micro_shards, micro_expo
     assert [r["kind"] for r in report["summary"]["kinds"]] == ["nerf", "roombox"]
     out_of_view_kinds.plot(report, tmp_path / "k.png")
     assert (tmp_path / "k.png").stat().st_size > 10_000
+
+
+def test_head_rates_move_each_heads_last_weight_to_a_rate_over_its_fan_in(micro_shards):
+    """`+bench.head_rates=fan_in`: every hypernetwork head's last weight sits in one group of its own at the
+    stage's rate over its fan-in; every other parameter keeps the stage's rate, none lost or doubled."""
+    import torch
+
+    from pipeline.bench.common import training_system
+
+    system, optimizer, cfg = training_system("train_lighting", ["profile=micro"], 0)
+    before = {id(p) for g in optimizer.param_groups for p in g["params"]}
+    rates = overfit.use_head_rates(system, optimizer, "fan_in")
+    after = [id(p) for g in optimizer.param_groups for p in g["params"]]
+    assert sorted(after) == sorted(before)
+    hyper = system.net.out_of_view.hyper
+    heads = [*hyper.heads, *(hyper.bias_heads if hyper.split_bias else [])]
+    lasts = [h[-1] if isinstance(h, torch.nn.Sequential) else h for h in heads]
+    lr = float(cfg.optim.optimizer.lr)
+    for last in lasts:
+        (group,) = [g for g in optimizer.param_groups if any(p is last.weight for p in g["params"])]
+        assert group["params"] == [last.weight] and group["lr"] == pytest.approx(lr / last.in_features)
+        (bias_group,) = [g for g in optimizer.param_groups if any(p is last.bias for p in g["params"])]
+        assert bias_group["lr"] == pytest.approx(lr)
+    assert len(rates) == len(lasts)
+    with pytest.raises(ValueError, match="head_rates='sqrt'"):
+        overfit.use_head_rates(system, optimizer, "sqrt")

@@ -141,11 +141,22 @@ def test_insert_and_edit_composite_into_the_photo(photos, exports, tmp_path, kin
     photo = read_linear(photos[kind])
     out = tmp_path / "ins.png"
     args = ["insert", str(photos[kind]), "--at", f"{H // 2},{W // 2}", "--object", "snowman", "--material", "glossy"]
-    assert main([*args, "--out", str(out), *_models(exports)]) == 0
+    assert main([*args, "--no-shadows", "--out", str(out), *_models(exports)]) == 0
     result = read_exr(tmp_path / "ins.exr")
     changed = np.abs(result - photo).max(-1) > 0
     assert 0 < changed.sum() < H * W / 2  # the object's pixels, and only those
     assert np.isfinite(result).all()
+    # with its shadows (the default): the same object pixels, and the room around it changed too
+    assert main([*args, "--out", str(tmp_path / "shadowed.exr"), *_models(exports)]) == 0
+    shadowed = read_exr(tmp_path / "shadowed.exr")
+    assert np.array_equal(shadowed[changed], result[changed])
+    around = (np.abs(shadowed - photo).max(-1) > 0) & ~changed
+    assert 0 < around.sum() < H * W / 2 and np.isfinite(shadowed).all() and (shadowed >= 0).all()
+    rows, cols = np.nonzero(around)  # near the object: within the bounding box of its pixels, widened
+    obj_rows, obj_cols = np.nonzero(changed)
+    span = max(np.ptp(obj_rows), np.ptp(obj_cols)) * 3 + 2
+    assert rows.min() >= obj_rows.min() - span and rows.max() <= obj_rows.max() + span
+    assert cols.min() >= obj_cols.min() - span and cols.max() <= obj_cols.max() + span
     png = np.asarray(Image.open(out))
     assert png.shape == (H, W, 3)
     if kind == "png":  # untouched pixels round-trip to the input's own 8-bit values
@@ -176,7 +187,7 @@ def test_insert_several_objects_a_mesh_and_a_material_file(photos, exports, tmp_
     (tmp_path / "red.yaml").write_text("albedo: [0.8, 0.1, 0.1]\nroughness: 0.4\nmetallic: 0\n")
     args = ["insert", str(photos["exr"]), "--at", f"{H // 2},{W // 4}", "--object", "sphere", "--material", "mirror"]
     args += ["--at", f"{H // 2},{3 * W // 4}", "--object", str(mesh), "--material", str(tmp_path / "red.yaml")]
-    assert main([*args, "--turn", "30", "--out", str(tmp_path / "two.exr"), *_models(exports)]) == 0
+    assert main([*args, "--turn", "30", "--no-shadows", "--out", str(tmp_path / "two.exr"), *_models(exports)]) == 0
     result = read_exr(tmp_path / "two.exr")
     changed = np.abs(result - photo).max(-1) > 0
     cols = np.nonzero(changed)[1]
