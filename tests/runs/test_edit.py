@@ -388,8 +388,9 @@ def test_the_oracles_converged_error_does_not_depend_on_its_samples(micro_root, 
     extrapolated one (`oracle.psnr: extrapolated`) estimates the converged render's and must not. On the
     first micro object case at 32 sample rays (noise variance a few times the squared error), over 16
     seeds: the mean extrapolated MSE at 4x the samples equals that at 1x within 4 standard errors of the
-    difference, while the plain MSE at 1x lies above its 4x by more than 3 (measured: 0.3 and 4.3). At 16
-    rays (noise 5x the error) the tone map's curvature leaves a bias of 2.7 standard errors."""
+    difference, while the plain MSE at 1x lies above its 4x by more than 3 (measured: 1.0 and 6.0; the
+    halves' decorrelated MSE, `psnr_decorrelated`, 0.1). At 16 rays (noise 5x the error) the extrapolated
+    moved 1.0 standard errors, the decorrelated 1.5."""
     from pipeline.systems import insertion_scoring as isc
 
     cfg = _micro_edit_cfg(micro_root, micro_shards, exports, "scoring.row_spp.oracle=32")
@@ -411,8 +412,8 @@ def test_the_oracles_converged_error_does_not_depend_on_its_samples(micro_root, 
         a, b = np.asarray(mse[1, kind]), np.asarray(mse[4, kind])
         return (a - b).mean(), (a - b).std(ddof=1) / np.sqrt(len(a))
 
-    print({kind: gap(kind) for kind in kinds}, {k: np.mean(v) for k, v in mse.items()})
-    diff, se = gap("psnr")
-    assert abs(diff) < 4 * se, (diff, se)
+    for kind in ("psnr", "psnr_decorrelated"):
+        diff, se = gap(kind)
+        assert abs(diff) < 4 * se, (kind, diff, se)
     diff, se = gap("psnr_with_noise")
     assert diff > 3 * se, (diff, se)  # one-sided: the noise the plain error carries is there to remove
