@@ -21,6 +21,7 @@ from pathlib import Path
 import numpy as np
 import torch
 from matplotlib.figure import Figure
+from matplotlib.ticker import NullFormatter
 from tqdm import tqdm
 
 from pipeline.bench.common import median_seconds, write_report
@@ -169,6 +170,7 @@ def plot(report: dict, path) -> None:
     for r in acc:
         ax.annotate(f"{r['spp']} spp", (r["render_seconds_per_case"], r["psnr"]), fontsize=7)
     ax.set_xscale("log")
+    ax.xaxis.set_minor_formatter(NullFormatter())  # minor labels collide on a span under one decade
     ax.set_xlabel("render seconds per object (160x120)")
     ax.set_ylabel(f"PSNR vs Mitsuba (dB, {report['accuracy']['cases']} test objects)")
     fig.tight_layout()
