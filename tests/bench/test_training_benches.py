@@ -210,14 +210,15 @@ def test_out_of_view_kinds_bench_runs_small(micro_root, micro_shards, micro_expo
     assert (tmp_path / "k.png").stat().st_size > 10_000
 
 
-def test_head_rates_move_each_heads_last_weight_to_a_rate_over_its_fan_in(micro_shards):
+def test_head_rates_move_each_heads_last_weight_to_a_rate_over_its_fan_in(micro_exports):
     """`+bench.head_rates=fan_in`: every hypernetwork head's last weight sits in one group of its own at the
     stage's rate over its fan-in; every other parameter keeps the stage's rate, none lost or doubled."""
     import torch
 
     from pipeline.bench.common import training_system
 
-    system, optimizer, cfg = training_system("train_lighting", ["profile=micro"], 0)
+    overrides = ["profile=micro", "gbuffers=ground_truth", f"material_path={micro_exports / 'material.pt'}"]
+    system, optimizer, cfg = training_system("train_lighting", overrides, 0)
     before = {id(p) for g in optimizer.param_groups for p in g["params"]}
     rates = overfit.use_head_rates(system, optimizer, "fan_in")
     after = [id(p) for g in optimizer.param_groups for p in g["params"]]
