@@ -21,6 +21,8 @@ from pipeline.data.interiorverse import DatasetError
 
 # array -> channels (None: one value per pixel)
 OBJECT_ARRAYS = {"pixel": None, "albedo": 3, "normal": 3, "depth_m": None, "material": 2, "radiance": 3, "stderr": 3}
+# the object's surroundings (`synth.cases.surrounding_pixels`): their own length, possibly 0
+RING_ARRAYS = {"ring_pixel": None, "ring_delta": 3, "ring_stderr": 3}
 EDIT_ARRAYS = {"pixel": None, "albedo": 3, "material": 2, "radiance": 3, "stderr": 3}
 OBJECT_FIELDS = ("kind", "spheres", "material_class", "albedo", "roughness", "metallic", "support", "anchor_pixel")
 EDIT_FIELDS = ("kind", "target", "material_index", "albedo", "roughness", "metallic")
@@ -30,7 +32,10 @@ EDIT_FIELDS = ("kind", "target", "material_index", "albedo", "roughness", "metal
 class Case:
     """One insertion or edit. description: its JSON entry; pixel (M,) long flat indices; albedo (M, 3),
     material (M, 2) roughness+metallic; normal (M, 3) and depth (M,) metres for objects (None for edits,
-    which keep the view's geometry); radiance, stderr (M, 3) the Mitsuba ground truth."""
+    which keep the view's geometry); radiance, stderr (M, 3) the Mitsuba ground truth. Objects also carry
+    their surroundings: ring_pixel (K,) long, the room's pixels near the object, and ring_delta,
+    ring_stderr (K, 3), the change the object makes there in Mitsuba's render (with it minus without it:
+    its shadow and bounce light) and that change's standard error; None for edits."""
 
     kind: str  # object | edit
     index: int
@@ -42,6 +47,9 @@ class Case:
     stderr: torch.Tensor
     normal: torch.Tensor | None = None
     depth: torch.Tensor | None = None
+    ring_pixel: torch.Tensor | None = None
+    ring_delta: torch.Tensor | None = None
+    ring_stderr: torch.Tensor | None = None
 
     @property
     def label(self) -> str:
@@ -147,6 +155,7 @@ def read_cases(root: str | Path, scene: str, view: str, height: int, width: int)
             if not len(pix) or pix.min() < 0 or pix.max() >= height * width:
                 raise DatasetError(f"{npz}: {kind}{i}_pixel is empty or outside the {height}x{width} view")
             t = {k: torch.from_numpy(np.asarray(v, np.float32)) for k, v in a.items() if k != "pixel"}
+            ring = _ring_arrays(arrays, f"{kind}{i}", npz, js, height, width) if kind == "object" else {}
             out.append(
                 Case(
                     kind,
@@ -159,6 +168,32 @@ def read_cases(root: str | Path, scene: str, view: str, height: int, width: int)
                     t["stderr"],
                     t.get("normal"),
                     t.get("depth_m"),
+                    **ring,
                 )
             )
     return out
+
+
+def _ring_arrays(arrays: dict, name: str, npz: Path, js: Path, height: int, width: int) -> dict:
+    """An object's surroundings (`RING_ARRAYS`), checked: present, one length, finite, pixels inside the
+    view (an empty ring is valid: an object far from every surface)."""
+    out = {}
+    for key, channels in RING_ARRAYS.items():
+        full = f"{name}_{key}"
+        if full not in arrays:
+            raise DatasetError(f"{npz}: lacks {full!r} for {name} of {js.name} (re-run synthesize)")
+        value = arrays[full]
+        want = (len(arrays[f"{name}_ring_pixel"]),) + (() if channels is None else (channels,))
+        if value.shape != want:
+            raise DatasetError(f"{npz}: {full} has shape {value.shape}, expected {want}")
+        if not np.isfinite(value).all():
+            raise DatasetError(f"{npz}: {full} has NaN/inf values")
+        out[key] = value
+    pix = out["ring_pixel"].astype(np.int64)
+    if len(pix) and (pix.min() < 0 or pix.max() >= height * width):
+        raise DatasetError(f"{npz}: {name}_ring_pixel is outside the {height}x{width} view")
+    return {
+        "ring_pixel": torch.from_numpy(pix),
+        "ring_delta": torch.from_numpy(out["ring_delta"].astype(np.float32)),
+        "ring_stderr": torch.from_numpy(out["ring_stderr"].astype(np.float32)),
+    }

@@ -11,6 +11,10 @@ import torch
 from pipeline.data import cases as case_io
 from pipeline.data import interiorverse as iv
 from pipeline.data.interiorverse import DatasetError
+from pipeline.data.synth import cases as synth_cases
+from pipeline.data.synth import mitsuba_backend as mb
+from pipeline.data.synth.cases import CaseConfig
+from pipeline.data.synth.scene import Room
 
 pytestmark = pytest.mark.slow
 
@@ -108,6 +112,61 @@ def test_object_gbuffers_match_analytic_ray_casting(micro_root):
             assert torch.allclose(c.albedo, torch.tensor(c.description["albedo"]).expand_as(c.albedo), atol=1e-6)
 
 
+def _object_cases(root):
+    for s, v in _views(root):
+        room = Room.from_json(json.loads((root / s / "scene.json").read_text()))
+        for c in _read(root, s, v)[1]:
+            if c.kind == "object":
+                yield s, v, room, c
+
+
+def test_surroundings_lie_around_the_object_and_darken_under_resting_ones(micro_root, mitsuba_variant):
+    """The ring: room pixels only (none of the object's), each within `ring_reach` bounding radii of the
+    object; below resting objects Mitsuba's change is a shadow on balance."""
+    reach = CaseConfig().ring_reach
+    resting_change, checked = 0.0, 0
+    for s, v, room, c in _object_cases(micro_root):
+        maps = iv.read_view(micro_root, s, v).maps
+        H, W = maps["im"].shape[:2]
+        assert not set(c.ring_pixel.tolist()) & set(c.pixel.tolist()), (s, v, c.name)
+        assert torch.all(c.ring_stderr >= 0)
+        ring = c.ring_pixel.numpy()
+        if not len(ring):  # an object far from every surface
+            continue
+        o, d = synth_cases._camera_rays(room.cameras[int(v)], W, H, ring)
+        scene = mb.load_scene(room)
+        points = o + d * mb.intersect(scene, o, d)["t"][:, None]
+        centre, bound = synth_cases._bounding(c.description["spheres"])
+        assert np.all(np.linalg.norm(points - centre, axis=1) <= reach * bound * 1.001), (s, v, c.name)
+        if c.description["support"] == "resting":
+            resting_change += float(c.ring_delta.sum())
+        checked += 1
+    assert checked >= 2 and resting_change < 0
+
+
+def test_paired_difference_matches_independent_renders_with_less_noise(micro_root, mitsuba_variant):
+    """`radiance_difference` (both scenes from the same random streams) estimates the same difference as
+    two independent renders, within 4 combined standard errors summed over the ring, and at the same
+    samples its standard error is smaller; a scene against itself differs by exactly 0 (llvm)."""
+    s, v, room, c = next((s, v, room, c) for s, v, room, c in _object_cases(micro_root) if len(c.ring_pixel))
+    maps = iv.read_view(micro_root, s, v).maps
+    H, W = maps["im"].shape[:2]
+    o, d = synth_cases._camera_rays(room.cameras[int(v)], W, H, c.ring_pixel.numpy())
+    obj = synth_cases.InsertedObject(**c.description)
+    with_obj, without = mb.load_scene(synth_cases.room_with_object(room, obj)), mb.load_scene(room)
+    spp = 64
+    diff, se = mb.radiance_difference(with_obj, without, o, d, spp, seed=3)
+    a, se_a = mb.radiance(with_obj, o, d, spp, seed=5)
+    b, se_b = mb.radiance(without, o, d, spp, seed=7)
+    total, total_se = float(diff.sum()), float(np.sqrt((se**2).sum()))
+    independent, independent_se = float((a - b).sum()), float(np.sqrt((se_a**2 + se_b**2).sum()))
+    assert abs(total - independent) <= 4 * np.hypot(total_se, independent_se)
+    assert total_se < independent_se
+    if mitsuba_variant.startswith("llvm"):
+        same, same_se = mb.radiance_difference(without, without, o, d, 8, seed=3)
+        assert np.all(same == 0) and np.all(same_se == 0)
+
+
 def test_edited_ground_truth_carries_the_new_material(micro_root):
     edits = [c for s, v in _views(micro_root) for c in _read(micro_root, s, v)[1] if c.kind == "edit"]
     assert edits
@@ -119,7 +178,10 @@ def test_edited_ground_truth_carries_the_new_material(micro_root):
         assert torch.all(c.radiance >= 0) and torch.all(c.stderr >= 0)
 
 
-@pytest.mark.parametrize("damage", ["missing_json", "corrupt_npz", "missing_key", "nan", "out_of_view", "wrong_size"])
+DAMAGES = ("missing_json", "corrupt_npz", "missing_key", "missing_ring", "nan", "out_of_view", "ring_out_of_view")
+
+
+@pytest.mark.parametrize("damage", [*DAMAGES, "wrong_size"])
 def test_damaged_case_files_are_refused_naming_the_file(micro_root, tmp_path, damage):
     scene, view = next((s, v) for s, v in _views(micro_root) if _read(micro_root, s, v)[1])
     shutil.copytree(micro_root / scene, tmp_path / scene)
@@ -134,6 +196,11 @@ def test_damaged_case_files_are_refused_naming_the_file(micro_root, tmp_path, da
     else:
         if damage == "missing_key":
             arrays.pop("object0_normal" if "object0_normal" in arrays else "edit0_albedo")
+        elif damage == "missing_ring":
+            arrays.pop(next(k for k in arrays if k.endswith("_ring_delta")))
+        elif damage == "ring_out_of_view":
+            key = next(k for k in arrays if k.endswith("_ring_pixel") and len(arrays[k]))
+            arrays[key][-1] = H * W
         elif damage == "nan":
             key = next(k for k in arrays if k.endswith("_radiance"))
             arrays[key][0, 0] = np.nan

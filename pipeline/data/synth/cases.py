@@ -11,6 +11,11 @@ samples, not denoised, so the ground truth lines up with the G-buffers (exact at
 view's own maps) and carries its standard error instead of a denoiser's bias. An object covers a few
 hundred pixels, so a high sample count costs little.
 
+Around each object, the room's pixels whose surface lies within `ring_reach` bounding radii of it (its
+surroundings, where its shadow and bounce light fall) carry the change the object makes there: Mitsuba's
+render with the object minus without it, both from the same random streams (`mb.radiance_difference`),
+so that only the paths the object changes differ.
+
 Descriptions are plain JSON (`<view>_cases.json`); arrays go to `<view>_cases.npz` keyed
 `object<k>_*` / `edit<k>_*` (see docs/data.md and `pipeline.data.cases`, the reader).
 """
@@ -43,6 +48,8 @@ class CaseConfig:
     edits: tuple[int, int] = (1, 2)  # material edits per view
     spp: int = 512  # path samples per ground-truth pixel of an object (a few hundred pixels: cheap)
     edit_spp: int = 128  # per pixel of an edited region (up to `edit_fraction` of the view)
+    ring_spp: int = 64  # per pixel of an object's surroundings (the change it makes there: paired renders)
+    ring_reach: float = 3.0  # surroundings: room points within this many bounding radii of the object
     radius_px: tuple[float, float] = (7.0, 12.0)  # projected radius of an object, pixels (at 160 px wide)
     min_pixels: int = 30  # an object case needs this many visible pixels
     edit_fraction: tuple[float, float] = (0.01, 0.2)  # an edit covers this share of the view
@@ -88,7 +95,7 @@ class ViewCases:
     edit_spp: int = 0
 
     def to_json(self) -> dict:
-        return {"version": 1, **asdict(self)}
+        return {"version": 2, **asdict(self)}
 
 
 # ----------------------------------------------------------------------------------------------------
@@ -202,6 +209,23 @@ def _object_gbuffer(obj_scene, camera: Camera, t_scene: np.ndarray, width: int, 
         "material": np.stack([hit["roughness"][pix], hit["metallic"][pix]], -1).astype(np.float32),
         "occluded_fraction": 1.0 - len(pix) / max(int(hit["hit"].sum()), 1),
     }
+
+
+def surrounding_pixels(
+    camera: Camera, t_scene: np.ndarray, mask: np.ndarray, spheres: list[list[float]], reach: float, exclude
+) -> np.ndarray:
+    """(K,) flat pixels of the room around an object: valid pixels (mask (H, W) > 0, finite ray length
+    t_scene (H, W) metres) whose surface point lies within `reach` bounding radii of the object's bounding
+    centre, minus `exclude` (the object's own pixels)."""
+    height, width = mask.shape
+    origins, dirs = _camera_rays(camera, width, height, np.arange(height * width))
+    t = t_scene.reshape(-1)
+    centre, bound = _bounding(spheres)
+    valid = (mask.reshape(-1) > 0) & np.isfinite(t)
+    points = origins + dirs * np.where(valid, t, 0.0)[:, None]
+    near = valid & (np.linalg.norm(points - centre, axis=1) <= reach * bound)
+    near[np.asarray(exclude, np.int64)] = False
+    return np.flatnonzero(near).astype(np.int32)
 
 
 def _camera_rays(camera: Camera, width: int, height: int, pixels: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -333,6 +357,12 @@ def generate_cases(
         arrays.update({f"object{i}_{key}": v for key, v in g.items()})
         arrays[f"object{i}_radiance"] = L.astype(np.float32)
         arrays[f"object{i}_stderr"] = se.astype(np.float32)
+        ring = surrounding_pixels(camera, gb["t"], gb["mask"], obj.spheres, cfg.ring_reach, g["pixel"])
+        o, d = _camera_rays(camera, width, height, ring)
+        delta, delta_se = mb.radiance_difference(full, scene, o, d, cfg.ring_spp, seed=seed * 16 + 12 + i)
+        arrays[f"object{i}_ring_pixel"] = ring
+        arrays[f"object{i}_ring_delta"] = delta.astype(np.float32)
+        arrays[f"object{i}_ring_stderr"] = delta_se.astype(np.float32)
     candidates = _edit_candidates(room, camera, gb, cfg)
     order = sorted(candidates)
     n_edit = min(int(rng.integers(cfg.edits[0], cfg.edits[1] + 1)), len(order))

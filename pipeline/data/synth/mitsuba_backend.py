@@ -320,6 +320,31 @@ def radiance(
     return mean, stderr
 
 
+def radiance_difference(
+    scene_a, scene_b, origins: np.ndarray, directions: np.ndarray, spp: int, seed: int, batch_rays: int = 1 << 21
+) -> tuple[np.ndarray, np.ndarray]:
+    """Radiance along the same rays in two scenes, a minus b, path traced with `spp` samples per ray drawn
+    from the same random streams in both (one seed, the same rays): where a path never meets what differs
+    between the scenes, its two samples are equal and their difference is exactly 0, so the difference
+    is far less noisy than two independent renders' (in the vectorised variants: the scalar loop draws one
+    stream for all rays in turn, so there the two renders part after the first path that differs and the
+    difference is unbiased but noisier). Returns mean (N, 3) and the standard error (N, 3) of the
+    per-sample differences."""
+    n = len(origins)
+    mean, stderr = np.zeros((n, 3)), np.zeros((n, 3))
+    rays_per_chunk = max(1, batch_rays // spp)
+    trace = _trace_vectorised if _is_vectorised() else _trace_loop
+    for c, start in enumerate(range(0, n, rays_per_chunk)):
+        sl = slice(start, min(n, start + rays_per_chunk))
+        o = np.repeat(np.asarray(origins[sl], np.float32), spp, axis=0)
+        d = np.repeat(np.asarray(directions[sl], np.float32), spp, axis=0)
+        stream = seed * 1000003 + c
+        diff = (trace(scene_a, o, d, stream) - trace(scene_b, o, d, stream)).reshape(-1, spp, 3)
+        mean[sl] = diff.mean(1)
+        stderr[sl] = diff.std(1, ddof=1) / math.sqrt(spp) if spp > 1 else np.inf
+    return mean, stderr
+
+
 def _trace_vectorised(scene, o, d, seed):
     import drjit as dr
     import mitsuba as mi
