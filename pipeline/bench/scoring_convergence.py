@@ -12,7 +12,8 @@ class; the stage's configuration is converged when every row is at scale 1.
 
 The `edit` configuration is composed from conf/ with `--override` on top. Needs the trained exports and
 `synthesize`'s cases (`dvc repro train_lighting`). Writes reports/bench/scoring_convergence.json (or
-`--out`) and a PNG beside it (PSNR against the scale, one panel per class).
+`--out`) and a PNG beside it (PSNR against the scale, one panel per class). `--ring` also measures the
+ring around objects (`systems.ring_scoring`) at each scale times `scoring.ring.spp`.
 """
 
 from __future__ import annotations
@@ -36,15 +37,22 @@ def measure(
     max_views: int | None = None,
     progress: bool = True,
     view_ids: list[str] | None = None,
+    ring: bool = False,
 ) -> list[dict]:
     """One record per case: {view, class, psnr: {scale: {row: dB}}} (and `psnr_with_noise`,
     `psnr_decorrelated` alike for the rows scored in parts, `insertion_scoring.parts`), every row
     rendered at each `scale` times its configured samples per pixel (`insertion_scoring.row_spp`) with
-    the same seeds (the stage's)."""
+    the same seeds (the stage's). With `ring`, object cases also carry `ring`: {scale: {ring_<row>: dB}},
+    the ring's PSNR of each row in `RING_ROWS` (`systems.ring_scoring`) at `scale` times
+    `scoring.ring.spp` (rows whose ring has no changed pixel left out)."""
     from pipeline.systems import insertion_scoring
 
     shared = insertion_scoring.stage_setup(cfg)
     layers = {n: insertion_scoring.scoring_layers(cfg, n) for n in scales}
+    ring_spp = insertion_scoring.ring_spp(cfg)
+    if ring and not ring_spp:
+        raise ValueError("--ring: the edit configuration scores no ring (scoring.ring.enabled=false)")
+    ring_layers = {n: insertion_scoring.scoring_layer(cfg, ring_spp * n) if ring else None for n in scales}
     views = shared["views"]
     if view_ids:
         unknown = sorted(set(view_ids) - {f"{scene}/{view}" for scene, view in views})
@@ -57,9 +65,14 @@ def measure(
         ctx, cases = insertion_scoring.view_context(shared, scene, view, cfg, oracle="oracle" in rows)
         per_case = [{"view": ctx["id"], "class": case_group(c.kind, c.label), "psnr": {}} for c in cases]
         for n, layer in layers.items():
-            scored = insertion_scoring.score_view({**ctx, "layers": layer}, cases, cfg, rows)
+            scored = insertion_scoring.score_view(
+                {**ctx, "layers": layer, "ring_layer": ring_layers[n]}, cases, cfg, rows, ring=ring
+            )
             for rec, res in zip(per_case, scored, strict=True):
                 rec["psnr"][n] = {row: res["rows"][row]["psnr"] for row in rows}
+                if "ring" in res:
+                    ring_psnr = {k: v["psnr"] for k, v in res["rows"].items() if k.startswith("ring_")}
+                    rec.setdefault("ring", {})[n] = {k: v for k, v in ring_psnr.items() if np.isfinite(v)}
                 for variant in PSNR_VARIANTS:  # rows scored in parts: their other PSNRs too
                     other = {row: res["rows"][row][variant] for row in rows if variant in res["rows"][row]}
                     if other:
@@ -97,6 +110,22 @@ def summarise(records: list[dict], scales: list[int], rows: tuple, tolerance: fl
             and all(abs(out["classes"][c]["rows"][row]["change_at_4x"][str(n)]["diff"]) <= tolerance for c in classes)
         ]
         out["converged_scale"][row] = min(ok) if ok else None
+    return out
+
+
+def summarise_ring(records: list[dict], scales: list[int], resamples: int = 2000) -> dict:
+    """Per ring row (`ring_<row>`): the object cases whose ring it scored at every scale, its mean ring
+    PSNR per scale and the paired change to 4x each scale that has one (interval over views)."""
+    with_ring = [r for r in records if "ring" in r]
+    names = sorted({k for r in with_ring for k in r["ring"][scales[0]]})
+    out = {}
+    for name in names:
+        rs = [r for r in with_ring if all(name in r["ring"][n] for n in scales)]
+        out[name] = {
+            "cases": len(rs),
+            "mean_psnr": {str(n): float(np.mean([r["ring"][n][name] for r in rs])) for n in scales},
+            "change_at_4x": _changes(rs, scales, name, "ring", resamples),
+        }
     return out
 
 
@@ -175,6 +204,7 @@ def run(
     progress: bool = True,
     view_ids: list[str] | None = None,
     rows: tuple = ROWS,
+    ring: bool = False,
 ) -> dict:
     from pipeline.bench.common import compose
     from pipeline.systems.insertion_scoring import row_spp
@@ -186,8 +216,11 @@ def run(
         raise ValueError(f"--rows {list(rows)}: choose among {list(ROWS)}")
     cfg = compose("edit", overrides)
     spp = {row: row_spp(cfg, row) for row in rows}
-    records = measure(cfg, scales, tuple(rows), max_views, progress, view_ids)
+    records = measure(cfg, scales, tuple(rows), max_views, progress, view_ids, ring)
     summary = summarise(records, scales, tuple(rows), tolerance)
+    if ring:
+        summary["ring"] = summarise_ring(records, scales)
+        summary["ring_spp"] = int(cfg.scoring.ring.spp)
     return {
         "summary": {"each row at its configured samples per pixel and at 4x them": headline(summary, spp, tolerance)},
         "row_spp": spp,
@@ -213,11 +246,14 @@ def main(argv=None) -> None:
     p.add_argument("--max-views", type=int, default=None, help="the first N test views only")
     p.add_argument("--views", nargs="*", default=None, help="these test views only (scene/view ids)")
     p.add_argument("--rows", nargs="+", default=list(ROWS), help=f"the rows to measure (default all: {' '.join(ROWS)})")
+    p.add_argument("--ring", action="store_true", help="also the ring around objects (scoring.ring.spp x each scale)")
     p.add_argument("--out", default="reports/bench/scoring_convergence.json", help="JSON to write (PNG beside it)")
     p.add_argument("--override", nargs="*", default=[], help="more `edit` config overrides (light_path=...)")
     a = p.parse_args(argv)
     try:
-        report = run(list(a.override), list(a.scale), a.tolerance, a.max_views, view_ids=a.views, rows=tuple(a.rows))
+        report = run(
+            list(a.override), list(a.scale), a.tolerance, a.max_views, view_ids=a.views, rows=tuple(a.rows), ring=a.ring
+        )
     except ValueError as exc:
         p.error(str(exc))
     out = Path(a.out)
@@ -225,6 +261,10 @@ def main(argv=None) -> None:
     plot(report, out.with_suffix(".png"))
     for row, n in report["converged_scale"].items():
         print(f"{row:22s} converged at {n}x its spp" if n else f"{row:22s} not converged at any measured scale")
+    for name, entry in report.get("ring", {}).items():
+        change = entry["change_at_4x"].get("1")
+        if change:
+            print(f"{name:22s} ring PSNR at 4x: {change['diff']:+.3f} dB [{change['lo']:+.3f}, {change['hi']:+.3f}]")
     print(out)
 
 

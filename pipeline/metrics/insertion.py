@@ -48,7 +48,9 @@ def psnr_decorrelated(half_a: torch.Tensor, half_b: torch.Tensor, target: torch.
     term of the variance times the error itself, small where the error is (`psnr_extrapolated` removes
     it). Averaged over a case's pixels the product is positive; where it is not (an exact match within
     noise), the cap applies."""
-    return _psnr(_error_product(half_a, half_b, target, scale))
+    s = torch.full((len(target),), float(scale), dtype=torch.float64)
+    ref = tonemap(target.double(), s)
+    return _psnr(_error_product(tonemap(half_a.double(), s), tonemap(half_b.double(), s), ref))
 
 
 def psnr_extrapolated(quarters: list[torch.Tensor], target: torch.Tensor, scale: float) -> tuple[float, float]:
@@ -73,16 +75,15 @@ def psnr_extrapolated(quarters: list[torch.Tensor], target: torch.Tensor, scale:
     for (a, b), (c, e) in (((0, 1), (2, 3)), ((0, 2), (1, 3)), ((0, 3), (1, 2))):
         half_1, half_2 = tonemap((q[a] + q[b]) / 2, s), tonemap((q[c] + q[e]) / 2, s)
         ext_1, ext_2 = 2 * half_1 - (tq[a] + tq[b]) / 2, 2 * half_2 - (tq[c] + tq[e]) / 2
-        extrapolated.append(float(((ext_1 - ref) * (ext_2 - ref)).mean()))
-        decorrelated.append(float(((half_1 - ref) * (half_2 - ref)).mean()))
+        extrapolated.append(_error_product(ext_1, ext_2, ref))
+        decorrelated.append(_error_product(half_1, half_2, ref))
     return _psnr(float(np.mean(extrapolated))), _psnr(float(np.mean(decorrelated)))
 
 
-def _error_product(a: torch.Tensor, b: torch.Tensor, target: torch.Tensor, scale: float) -> float:
-    """Mean over pixels and channels of (T(a) - T(g)) (T(b) - T(g)), T the tone map at `scale`."""
-    s = torch.full((len(target),), float(scale), dtype=torch.float64)
-    ref = tonemap(target.double(), s)
-    return float(((tonemap(a.double(), s) - ref) * (tonemap(b.double(), s) - ref)).mean())
+def _error_product(a: torch.Tensor, b: torch.Tensor, ref: torch.Tensor) -> float:
+    """Mean over pixels and channels of (a - ref) (b - ref): two independent estimates' errors, all (M, 3)
+    tone-mapped."""
+    return float(((a - ref) * (b - ref)).mean())
 
 
 def _psnr(mse: float) -> float:

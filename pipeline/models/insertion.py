@@ -24,7 +24,7 @@ import torch
 from pipeline.models.light_net.branches import image_scale
 from pipeline.models.material_net import predict_maps
 from pipeline.models.render_layer import MCRenderLayer, PointRadianceFn
-from pipeline.models.shadows import facing_camera, object_radiance, occlusion_light, proxy_pixels
+from pipeline.models.shadows import facing_camera, object_radiance, occlusion_light, proxy_pixels, shape_bounds
 from pipeline.ops.camera import backproject, pixel_directions
 from pipeline.ops.meshes import place_mesh, raycast_mesh
 from pipeline.ops.primitives import LIFT_M, object_spheres, raycast_spheres
@@ -112,8 +112,8 @@ def cast_shape(shape: Shape, origin: torch.Tensor, direction: torch.Tensor):
         return raycast_spheres(origin, direction, shape)
     vertices, faces = shape
     vertices = vertices.to(origin.dtype)
-    centre = (vertices.max(0).values + vertices.min(0).values) / 2
-    bound = torch.cat([centre, (vertices - centre).norm(dim=-1).max().reshape(1) * 1.001])[None]
+    centre, radius = shape_bounds(shape)
+    bound = torch.cat([centre.to(origin.dtype), torch.tensor([radius * 1.001], dtype=origin.dtype)])[None]
     t_bound, _ = raycast_spheres(origin, direction, bound)
     near = torch.nonzero(torch.isfinite(t_bound)).squeeze(-1)
     t = torch.full_like(t_bound, float("inf"))
@@ -262,9 +262,10 @@ class InsertedObject:
     label: str = "--at"
 
 
-def _object_shape(view: PreparedView, obj: InsertedObject) -> Shape:
-    """The object placed in view space (`Shape`), resting on the predicted surface at its pixel."""
-    gb, fov = view.pred, view.fov
+def place_object(view: PreparedView, obj: InsertedObject, stand_on: dict | None = None) -> Shape:
+    """The object placed in view space (`Shape`), resting on the surface at its pixel: the predicted
+    G-buffers' (or `stand_on`'s, depth (1, H, W) metres and normal (1, 3, H, W))."""
+    gb, fov = (view.pred if stand_on is None else stand_on), view.fov
     H, W = view.photo.shape[:2]
     at = f"{obj.label} {obj.row},{obj.col}"
     if not (0 <= obj.row < H and 0 <= obj.col < W):
@@ -288,17 +289,28 @@ def _object_shape(view: PreparedView, obj: InsertedObject) -> Shape:
     return place_mesh(vertices, point.double(), n.double(), size, obj.turn, LIFT_M), faces
 
 
-def insert_into(view: PreparedView, objects: list[InsertedObject], spp: int, seed: int, shadows: bool = True):
+def insert_into(
+    view: PreparedView,
+    objects: list[InsertedObject],
+    spp: int,
+    seed: int,
+    shadows: bool = True,
+    stand_on: dict | None = None,
+):
     """Objects (`InsertedObject`) inserted into a `prepare_view` together, each pixel showing the nearest,
     rendered at `spp` under LightNet (which sees the room without them): (composited photo (H, W, 3), the
     objects' pixels (M,)). With `shadows`, the room around them also gets their shadows and bounce light
-    by differential rendering (`models.shadows`, at the same spp). An object seen nowhere (behind the
-    scene, outside the view, or wholly behind another object) is refused, naming it."""
+    by differential rendering (`models.shadows`, at the same spp). Objects stand on the predicted surface,
+    or on `stand_on`'s (depth and normals of the view from elsewhere, e.g. the ground truth, to compare with
+    a reference render), which then also decides what hides them and where the proxy lies; materials and
+    light are the predictions'. An object seen nowhere (behind the scene, outside the view, or wholly behind
+    another object) is refused, naming it."""
     if not objects:
         raise InsertionError("--object: nothing to insert")
     gb, fov = view.pred, view.fov
-    shapes = [_object_shape(view, obj) for obj in objects]
-    found = object_gbuffer(shapes, gb["depth"][0], fov)
+    geometry = gb if stand_on is None else {**gb, "depth": stand_on["depth"], "normal": stand_on["normal"]}
+    shapes = [place_object(view, obj, geometry) for obj in objects]
+    found = object_gbuffer(shapes, geometry["depth"][0], fov)
     for k, obj in enumerate(objects):
         if found is None or not (found["shape"] == k).any():
             where = f"{obj.label} {obj.row},{obj.col}"
@@ -321,22 +333,23 @@ def insert_into(view: PreparedView, objects: list[InsertedObject], spp: int, see
         rgb = render_case(MCRenderLayer(spp=spp), shading, fov, pixel, light, seed)
     photo = composite_image(view.photo, pixel, rgb)
     if shadows:
-        photo = _with_shadows(view, photo, shapes, object_radiance(rgb, seen, len(objects)), pixel, spp, seed)
+        radiance = object_radiance(rgb, seen, len(objects))
+        photo = _with_shadows(view, geometry, photo, shapes, radiance, pixel, spp, seed)
     return photo, pixel
 
 
-def _with_shadows(view, photo, shapes, radiance, pixel, spp: int, seed: int) -> torch.Tensor:
+def _with_shadows(view, proxy_gb: dict, photo, shapes, radiance, pixel, spp: int, seed: int) -> torch.Tensor:
     """photo (H, W, 3) plus the objects' effect on the room around them (`models.shadows`): the difference
-    of the proxy's renders with and without them, the result clamped at 0 (a shadow darkens no pixel
-    below black)."""
-    gb, fov = view.pred, view.fov
-    proxy = proxy_pixels(gb["depth"][0], fov, shapes, pixel)
+    of the proxy's (G-buffers `proxy_gb`) renders with and without them, the result clamped at 0 (a shadow
+    darkens no pixel below black). LightNet reads the predicted G-buffers, as for the objects."""
+    fov = view.fov
+    proxy = proxy_pixels(proxy_gb["depth"][0], fov, shapes, pixel)
     if not proxy.numel():
         return photo
-    light = light_net_radiance(view.net, view.ctx_pred, gb, fov, seed + 2)  # its own out-of-view samples
+    light = light_net_radiance(view.net, view.ctx_pred, view.pred, fov, seed + 2)  # its own out-of-view samples
     blocked = occlusion_light(light, shapes, radiance, cast_shape)
     with torch.no_grad():
-        delta = render_case(MCRenderLayer(spp=spp), facing_camera(gb, fov), fov, proxy, blocked, seed + 1)
+        delta = render_case(MCRenderLayer(spp=spp), facing_camera(proxy_gb, fov), fov, proxy, blocked, seed + 1)
     flat = photo.reshape(-1, 3).clone()
     flat[proxy] = (flat[proxy] + delta.to(flat.dtype)).clamp(min=0)
     return flat.reshape(photo.shape)

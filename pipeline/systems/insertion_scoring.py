@@ -79,6 +79,7 @@ from pipeline.ops.camera import backproject
 from pipeline.ops.envmap import sphere_lookup
 from pipeline.ops.guide import SphereGuide
 from pipeline.systems.lighting_baselines import constant_light, mean_training_radiance, scaled_constant_light
+from pipeline.systems.ring_scoring import RING_ROWS, ring_change, ring_scores, view_spheres
 
 ROWS = ("lightnet", "lightnet_gt_gbuffers", "constant", "scaled_constant", "nearest_probe", "oracle")
 GUIDED = ("nearest_probe", "oracle")  # rows whose light is sharp and cheap to query: sampled with a light guide
@@ -86,6 +87,7 @@ FIGURE_ROWS = ("lightnet", "lightnet_gt_gbuffers", "scaled_constant", "nearest_p
 NOISY_LIGHT = ("oracle",)  # rows whose light is itself a Monte Carlo estimate
 ORACLE_PSNR = {"extrapolated": 4, "decorrelated": 2, "plain": 1}  # the independent renders each scores from
 PSNR_VARIANTS = ("psnr_with_noise", "psnr_decorrelated")  # the other PSNRs of a row scored in parts
+RING_SEED_OFFSET = 5  # the ring's renders: a seed apart from the case's (and its parts', +0..+3)
 
 
 def parts(cfg: DictConfig, row: str) -> int:
@@ -112,9 +114,14 @@ def case_seed(view_seed: int, index: int) -> int:
     return int(view_seed) + 7919 * int(index)
 
 
-def score_view(ctx: dict, cases: list[case_io.Case], cfg: DictConfig, rows: tuple = ROWS) -> list[dict]:
+def score_view(
+    ctx: dict, cases: list[case_io.Case], cfg: DictConfig, rows: tuple = ROWS, ring: bool = False
+) -> list[dict]:
     """`rows` (all by default) of every case of one view:
-    [{"case", "rows": {row: scores}, "renders": {row: (M, 3)}}]."""
+    [{"case", "rows": {row: scores}, "renders": {row: (M, 3)}, "seconds": {row: s}}]. With `ring`, object
+    cases are also scored on the room around them (`systems.ring_scoring`): the composite without
+    differential rendering and, for each of `rows` in `RING_ROWS`, with it (`ring_<row>` in "rows", the
+    changes in "ring", their time in "seconds" as `ring`), at `ctx["ring_layer"]`'s samples."""
     view = ctx["view"]
     fov, gt, pred, photo, scale = view.fov, view.gt, view.pred, view.photo, view.scale
     constants, free = ctx["constants"], ctx["light"].free
@@ -170,7 +177,31 @@ def score_view(ctx: dict, cases: list[case_io.Case], cfg: DictConfig, rows: tupl
             scores[row] = case_scores(renders[row], case.radiance, photo, case.pixel, float(scale))
             scores[row].update(parted_psnr(renders_k, case.radiance, float(scale), scores[row]["psnr"]))
         scores["ground_truth"] = {"noise_floor_psnr": noise_floor_psnr(case.radiance, case.stderr, float(scale))}
-        out.append({"case": case, "rows": scores, "renders": renders, "seconds": seconds})
+        result = {"case": case, "rows": scores, "renders": renders, "seconds": seconds}
+        if ring and case.kind == "object":
+            t0 = time.perf_counter()
+            shape = view_spheres(case.description["spheres"], ctx["w2v"])
+            # the proxy where the room truly is, as the object is placed where it truly is; its materials
+            # (and every row's light) the predictions
+            proxy = {**pred, "depth": gt["depth"], "normal": gt["normal"]}
+            changes = {
+                row: ring_change(
+                    ctx["ring_layer"],
+                    proxy,
+                    fov,
+                    case.ring_pixel,
+                    rows_light[row],
+                    shape,
+                    renders[row].mean(0),  # the object's radiance towards the room, as `invrender insert`
+                    seed_of_case + RING_SEED_OFFSET,
+                    guide if row in GUIDED else None,
+                )
+                for row in rows
+                if row in RING_ROWS
+            }
+            scores.update(ring_scores(photo, case, changes, float(scale)))
+            result["ring"], seconds["ring"] = changes, time.perf_counter() - t0
+        out.append(result)
     return out
 
 
@@ -252,6 +283,38 @@ def case_panel(res: dict, photo: torch.Tensor, scale: float, view_id: str, rows:
     }
 
 
+def ring_panel(res: dict, photo: torch.Tensor, scale: float, view_id: str) -> dict:
+    """One `insertion_grid` panel of a case scored with its ring (`score_view(..., ring=True)`): Mitsuba's
+    render (the object and its change to the room), LightNet's object with the shadow and bounce light
+    of differential rendering and without them, each with its PSNR on the ring."""
+    case = res["case"]
+    ring, base = case.ring_pixel, photo.reshape(-1, 3)[case.ring_pixel]
+    with_object = composite_image(photo, case.pixel, res["renders"]["lightnet"])
+    shadowed = (base + res["ring"]["lightnet"].to(base.dtype)).clamp(min=0)
+    truth = composite_image(photo, ring, (base + case.ring_delta.to(base.dtype)).clamp(min=0))
+    return {
+        "label": f"{view_id} {case.name} {case.label}",
+        "photo": photo.numpy(),
+        "scale": float(scale),
+        "pixels": torch.cat([case.pixel, ring]).numpy(),
+        "gt": composite_image(truth, case.pixel, case.radiance).numpy(),
+        "rows": {
+            "lightnet_shadows": composite_image(with_object, ring, shadowed).numpy(),
+            "no_shadows": with_object.numpy(),
+        },
+        "psnr": {
+            name: res["rows"][f"ring_{row}"]["psnr"]
+            for name, row in (("lightnet_shadows", "lightnet"), ("no_shadows", "no_shadows"))
+        },
+    }
+
+
+def ring_panels(results: list[dict], photo_of: dict, n: int) -> list[dict]:
+    """The first `n` object cases scored with a ring that has changed pixels, as `ring_panel`s."""
+    picked = [r for r in results if "ring" in r and np.isfinite(r["rows"]["ring_no_shadows"]["psnr"])][:n]
+    return [ring_panel(res, *photo_of[res["view"]]) for res in picked]
+
+
 def figure_panels(results: list[dict], photo_of: dict, kind: str, n: int) -> list[dict]:
     """The first `n` scored cases of `kind` (`object` or `edit`) as figure panels (`case_panel`);
     photo_of: view id -> (photo, scale, view id)."""
@@ -285,6 +348,18 @@ def row_spp(cfg: DictConfig, row: str) -> int:
     n = int(extra.get(row, cfg.scoring.spp))
     if n < 1:
         raise ValueError(f"{key}={n}: at least 1 sample per pixel")
+    return n
+
+
+def ring_spp(cfg: DictConfig) -> int:
+    """Samples per pixel of the ring's differential renders (`scoring.ring.spp`), or 0 when the stage
+    scores no ring (`scoring.ring.enabled` false, or no `scoring.ring`)."""
+    ring = cfg.scoring.get("ring")
+    if ring is None or not ring.get("enabled", False):
+        return 0
+    n = int(ring.spp)
+    if n < 1:
+        raise ValueError(f"scoring.ring.spp={n}: at least 1 sample per pixel")
     return n
 
 
@@ -346,6 +421,7 @@ def stage_setup(cfg: DictConfig) -> dict:
         "net": net.eval(),
         "constants": mean_training_radiance(DataLoader(train, batch_size=16, collate_fn=collate_views)),
         "layers": scoring_layers(cfg),
+        "ring_layer": scoring_layer(cfg, ring_spp(cfg)) if ring_spp(cfg) else None,
         "views": views,
         "max_depth": int(_dataset_record(root)["config"]["max_depth"]),
     }
@@ -382,6 +458,7 @@ def view_context(
         "seed": seed,
         "view": prepared,
         "layers": shared["layers"],
+        "ring_layer": shared.get("ring_layer"),
         "constants": shared["constants"],
         "light": light,
         "w2v": np.asarray(camera["world_from_view"]),

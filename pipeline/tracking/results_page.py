@@ -272,6 +272,7 @@ def section_edit(reports: Path, facts: dict | None = None) -> list[str]:
             if f"{p}_diff" in m:
                 diff_rows.append([f"{kind} {g}", who, signed(m[f"{p}_diff"]), interval(m[f"{p}_lo"], m[f"{p}_hi"])])
     lines += md_table(["cases", "against", "difference", "95 % interval"], diff_rows)
+    lines += ring_lines(m)
     a = {w: m.get(f"insert/all/{w}/psnr") for w in ("lightnet", "scaled_constant", "oracle")}
     if all(v is not None for v in a.values()) and a["oracle"] != a["scaled_constant"]:
         closed = (a["lightnet"] - a["scaled_constant"]) / (a["oracle"] - a["scaled_constant"])
@@ -286,6 +287,46 @@ def section_edit(reports: Path, facts: dict | None = None) -> list[str]:
         lines[-1] += f"; the stage's wall time {num(t.get('wall_seconds'), 3)} s."
     lines.append("")
     return lines
+
+
+RING_ROWS = ("no_shadows", "lightnet", "scaled_constant", "nearest_probe")
+
+
+def ring_lines(m: dict) -> list[str]:
+    """The room around inserted objects (`systems.ring_scoring`): each row's PSNR on the ring and on the
+    whole surroundings, and the paired differences; nothing when the stage scored no ring."""
+    if "insert/all/ring/cases" not in m:
+        return []
+    lines = [
+        "",
+        "The room around each inserted object: the photo plus each row's shadow and bounce light (differential",
+        "rendering under the row's light, the proxy's geometry where the object truly stands, its materials",
+        "predicted; `no_shadows` leaves the photo as it is) against the photo plus Mitsuba's change (its render",
+        "with the object minus without it). PSNR (dB) on",
+        "the ring, the pixels the object changes in Mitsuba's render, and on all its surroundings (pixels within",
+        f"3 bounding radii), at {num(m.get('scoring_spp/ring'))} samples per pixel; `reports/edit/shadows.png`.",
+        "",
+    ]
+    header = ["row", *(f"ring {g}" for g in INSERT_GROUPS), "surroundings all"]
+    rows = [["cases", *(num(m.get(f"insert/{g}/ring/cases")) for g in INSERT_GROUPS), ""]]
+    for who in RING_ROWS:
+        cells = [num(m.get(f"insert/{g}/ring/{who}/psnr")) for g in INSERT_GROUPS]
+        rows.append([who, *cells, num(m.get(f"insert/all/ring/{who}/psnr_surround"))])
+    lines += md_table(header, rows)
+    diffs = []
+    for g in INSERT_GROUPS:
+        for a, b in [(who, "no_shadows") for who in RING_ROWS[1:]] + [("lightnet", w) for w in RING_ROWS[2:]]:
+            for score, where in (("psnr", "ring"), ("psnr_surround", "surroundings")):
+                p = f"insert/{g}/ring/{a}_minus_{b}/{score}"
+                if f"{p}_lo" in m and (score == "psnr" or g == "all"):
+                    diffs.append(
+                        [f"{where} {g}", f"{a} - {b}", signed(m[f"{p}_diff"]), interval(m[f"{p}_lo"], m[f"{p}_hi"])]
+                    )
+    return (
+        lines
+        + ["", "Paired differences on the ring (dB):", ""]
+        + md_table(["cases", "rows", "difference", "95 % interval"], diffs)
+    )
 
 
 def section_evaluate(reports: Path) -> list[str]:
@@ -535,7 +576,7 @@ BENCH_HEADLINES = {
 
 
 # benches whose figure the page shows (the others' PNGs lie beside their JSONs)
-BENCH_FIGURES = ("real_photo",)
+BENCH_FIGURES = ("real_photo", "insertion_figure")
 
 
 def section_benches(reports: Path, profile: str) -> list[str]:

@@ -50,11 +50,19 @@ def test_stage_scores_every_row_with_paired_intervals(micro_root, micro_shards, 
             lo, d, hi = (metrics[f"{group}/lightnet_minus_{row}/psnr_{k}"] for k in ("lo", "diff", "hi"))
             assert lo <= d + 1e-9 and d <= hi + 1e-9
             assert verdict == (1.0 if lo > 0 else -1.0 if hi < 0 else 0.0)
+    # the ring: every object case scored around it without and with differential rendering (the rows'
+    # changes rendered at scoring.ring.spp), views resampled
+    assert cfg.scoring.ring.enabled and metrics["scoring_spp/ring"] == cfg.scoring.ring.spp
+    assert metrics["insert/all/ring/cases"] >= 1
+    for row in ("no_shadows", "lightnet", "scaled_constant", "nearest_probe"):
+        assert all(f"insert/all/ring/{row}/{s}" in metrics for s in ("psnr", "psnr_surround"))
+    assert "insert/all/ring/lightnet_minus_no_shadows/psnr_diff" in metrics
     report = tmp_path / "report"
     rows = (report / "cases.csv").read_text().splitlines()
+    assert "ring_lightnet/psnr" in rows[0].split(",")
     n_cases = metrics["insert/all/cases"] + metrics["edit/all/cases"]
     assert len(rows) == 1 + n_cases
-    for name in ("metrics.json", "timings.json", "insertion.png", "editing.png"):
+    for name in ("metrics.json", "timings.json", "insertion.png", "editing.png", "shadows.png"):
         assert (report / name).is_file(), name
     assert set(json.loads((report / "metrics.json").read_text())) == set(metrics)
 
@@ -171,6 +179,28 @@ def test_insert_and_edit_composite_into_the_photo(photos, exports, tmp_path, kin
     outside = mask == 0
     assert np.array_equal(edited[outside], photo[outside]) and not np.array_equal(edited[~outside], photo[~outside])
     assert (tmp_path / "ed.png").is_file()
+
+
+def test_objects_stand_on_the_geometry_given(micro_root, exports):
+    """`insert_into(stand_on=...)`: the predicted G-buffers given explicitly change nothing (same seed, same
+    image); the ground truth's put the object, its visibility and its shadow's proxy elsewhere."""
+    from pipeline.data import interiorverse as iv
+    from pipeline.models.insertion import InsertedObject, insert_into, prepare_view
+    from pipeline.models.light_net import load_light_export
+    from pipeline.models.material_net import load_material_export
+
+    scene = iv.read_split(micro_root, "test")[0]
+    maps = iv.read_view(micro_root, scene, "000").maps
+    fov = float(iv.read_cameras(micro_root, scene)["000"]["fov_x_deg"])
+    net, _ = load_light_export(exports / "light.pt")
+    view = prepare_view(maps["im"], *load_material_export(exports / "material.pt"), net, fov, gt_maps=maps)
+    H, W = maps["im"].shape[:2]
+    obj = [InsertedObject("sphere", H // 2, W // 2)]
+    plain, pixels = insert_into(view, obj, 4, 0)
+    same, same_pixels = insert_into(view, obj, 4, 0, stand_on=view.pred)
+    assert torch.equal(plain, same) and torch.equal(pixels, same_pixels)
+    on_truth, truth_pixels = insert_into(view, obj, 4, 0, stand_on=view.gt)
+    assert not torch.equal(on_truth, plain) and torch.isfinite(on_truth).all()
 
 
 def test_insert_several_objects_a_mesh_and_a_material_file(photos, exports, tmp_path):
@@ -366,8 +396,9 @@ def _micro_edit_cfg(micro_root, micro_shards, exports, *more):
 def test_the_stages_scoring_is_converged_on_micro_cases(micro_root, micro_shards, exports):
     """Every row but the oracle of the first micro test view's cases, at the `edit` stage's own samples per
     pixel (tiny's `scoring`) and at 4x them: no class's mean PSNR moves by more than 0.1 dB
-    (`bench.scoring_convergence`), the nearest probe's sharp light included. The oracle's light is noisy
-    itself: the next test checks its decorrelated PSNR."""
+    (`bench.scoring_convergence`), the nearest probe's sharp light included; nor, on the first test view
+    with an object on a surface, does any row's PSNR on the ring around it (`scoring.ring.spp`). The
+    oracle's light is noisy itself: the next test checks its decorrelated PSNR."""
     from pipeline.bench import scoring_convergence as sc
     from pipeline.systems.insertion_scoring import ROWS
 
@@ -381,6 +412,20 @@ def test_the_stages_scoring_is_converged_on_micro_cases(micro_root, micro_shards
     summary = sc.summarise(records, [1, 4], rows, 0.1, resamples=200)
     moved = {row: summary["classes"]["all"]["rows"][row]["change_at_4x"]["1"]["diff"] for row in rows}
     assert summary["converged_scale"] == dict.fromkeys(rows, 1), moved
+
+    from pipeline.data import cases as case_io
+
+    def has_ring(scene, view):  # an object on a surface: room around it that it changes
+        _, cases, _ = case_io.read_case_view(micro_root, scene, view, "test")
+        return any(c.kind == "object" and len(c.ring_pixel) for c in cases)
+
+    view = next(f"{s}/{v}" for s, v in case_io.case_views(micro_root, "test") if has_ring(s, v))
+    on_ring = ("lightnet", "scaled_constant", "nearest_probe")
+    records = sc.measure(cfg, [1, 4], on_ring, progress=False, view_ids=[view], ring=True)
+    ring = sc.summarise_ring(records, [1, 4], resamples=200)  # the ring at tiny's scoring.ring.spp and 4x
+    assert ring and set(ring) <= {"ring_no_shadows", "ring_lightnet", "ring_scaled_constant", "ring_nearest_probe"}
+    ring_moved = {name: entry["change_at_4x"]["1"]["diff"] for name, entry in ring.items()}
+    assert all(abs(d) <= 0.1 for d in ring_moved.values()), ring_moved
 
 
 def test_the_oracles_converged_error_does_not_depend_on_its_samples(micro_root, micro_shards, exports):

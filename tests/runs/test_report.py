@@ -55,3 +55,25 @@ def test_corrupt_or_missing_reports(tmp_path):
     (reports / "evaluate" / "trained_iiw.csv").write_text("id,whdr_gamma\n1000,nan-ish\n")
     with pytest.raises(ValueError, match="trained_iiw.csv: row 2"):
         render(reports)
+
+
+def test_the_ring_table_shows_each_row_and_its_paired_differences(tmp_path):
+    reports = tmp_path / "reports"
+    shutil.copytree(REPORTS, reports)
+    path = reports / "edit" / "metrics.json"
+    metrics = {k: v for k, v in json.loads(path.read_text()).items() if "/ring/" not in k}
+    path.write_text(json.dumps(metrics))
+    assert "The room around each inserted object" not in render(reports)  # a stage run without the ring
+    ring = {"insert/all/ring/cases": 40.0, "scoring_spp/ring": 128.0}
+    for k, who in enumerate(("no_shadows", "lightnet", "scaled_constant", "nearest_probe")):
+        ring[f"insert/all/ring/{who}/psnr"] = 30.0 + k
+        ring[f"insert/all/ring/{who}/psnr_surround"] = 40.0 + k
+    p = "insert/all/ring/lightnet_minus_no_shadows/psnr"
+    ring.update({f"{p}_diff": 1.25, f"{p}_lo": 0.5, f"{p}_hi": 2.0, f"{p}_verdict": 1.0})
+    path.write_text(json.dumps({**metrics, **ring}))
+    page = render(reports)
+    assert "The room around each inserted object" in page and "at 128 samples per pixel" in page
+    ring_table = page.split("The room around each inserted object")[1]
+    row = next(line for line in ring_table.splitlines() if line.startswith("| lightnet |"))
+    assert row.split("|")[-3:-1] == [f" {num(31.0)} ", f" {num(41.0)} "]  # ring all, surroundings all
+    assert "| ring all | lightnet - no_shadows | +1.25 |" in page
