@@ -641,6 +641,15 @@ def section_findings(facts: dict, claim_counts: dict[str, int] | None) -> list[s
                     )
                     + ". `reports/edit/metrics.json`."
                 )
+        p = "insert/all/ring/lightnet_minus_no_shadows/psnr"
+        if f"{p}_lo" in m:
+            lines.append(
+                f"- Shadows and bounce light around inserted objects ({num(m['insert/all/ring/cases'])} objects that "
+                f"change the room in Mitsuba's render): LightNet with differential rendering "
+                f"{num(m['insert/all/ring/lightnet/psnr'])} dB against {num(m['insert/all/ring/no_shadows/psnr'])} dB "
+                f"for the plain composite, {_ci({'diff': m[f'{p}_diff'], 'lo': m[f'{p}_lo'], 'hi': m[f'{p}_hi']})}. "
+                "`reports/edit/metrics.json`, `reports/edit/shadows.png`."
+            )
     if claim_counts:
         told = ", ".join(f"{n} {verdict}" for verdict, n in sorted(claim_counts.items()))
         lines.append(
