@@ -272,7 +272,7 @@ def section_edit(reports: Path, facts: dict | None = None) -> list[str]:
             if f"{p}_diff" in m:
                 diff_rows.append([f"{kind} {g}", who, signed(m[f"{p}_diff"]), interval(m[f"{p}_lo"], m[f"{p}_hi"])])
     lines += md_table(["cases", "against", "difference", "95 % interval"], diff_rows)
-    lines += ring_lines(m)
+    lines += ring_lines(m, read_json(reports / "bench/scoring_convergence_ring.json"))
     a = {w: m.get(f"insert/all/{w}/psnr") for w in ("lightnet", "scaled_constant", "oracle")}
     if all(v is not None for v in a.values()) and a["oracle"] != a["scaled_constant"]:
         closed = (a["lightnet"] - a["scaled_constant"]) / (a["oracle"] - a["scaled_constant"])
@@ -292,9 +292,11 @@ def section_edit(reports: Path, facts: dict | None = None) -> list[str]:
 RING_ROWS = ("no_shadows", "lightnet", "scaled_constant", "nearest_probe")
 
 
-def ring_lines(m: dict) -> list[str]:
+def ring_lines(m: dict, convergence: dict | None = None) -> list[str]:
     """The room around inserted objects (`systems.ring_scoring`): each row's PSNR on the ring and on the
-    whole surroundings, and the paired differences; nothing when the stage scored no ring."""
+    whole surroundings, the paired differences, and each row's change at 4x the ring's samples where
+    `bench.scoring_convergence --ring` measured it (`convergence`, its JSON); nothing when the stage
+    scored no ring."""
     if "insert/all/ring/cases" not in m:
         return []
     lines = [
@@ -305,11 +307,19 @@ def ring_lines(m: dict) -> list[str]:
         "with the object minus without it). PSNR (dB) on",
         "the ring, the pixels the object changes in Mitsuba's render, and on all its surroundings (pixels within",
         f"3 bounding radii), at {num(m.get('scoring_spp/ring'))} samples per pixel; `reports/edit/shadows.png`.",
-        "At that count the ring under LightNet's and the scaled constant's light moves by at most 0.1 dB at 4x",
-        "the samples (tests/runs/test_edit.py, one micro view); under the nearest probe's sharp light it moved",
-        "0.12 dB there, so that row's ring is not known to be converged and may be scored low by its noise.",
         "",
     ]
+    ring = (convergence or {}).get("ring", {})
+    moved = {k.removeprefix("ring_"): v["change_at_4x"].get("1") for k, v in ring.items()}
+    moved = {k: v for k, v in moved.items() if v}
+    if moved:
+        lines += [
+            f"Ring PSNR at 4x the samples minus at {num(convergence.get('ring_spp'))}, on "
+            f"{num(convergence.get('views'))} test views (`reports/bench/scoring_convergence_ring.json`): "
+            + ", ".join(f"{k} {_ci(v)}" for k, v in sorted(moved.items()))
+            + ". A row that moves by more than 0.1 dB is not converged: its ring is scored low by its noise.",
+            "",
+        ]
     header = ["row", *(f"ring {g}" for g in INSERT_GROUPS), "surroundings all"]
     rows = [["cases", *(num(m.get(f"insert/{g}/ring/cases")) for g in INSERT_GROUPS), ""]]
     for who in RING_ROWS:
