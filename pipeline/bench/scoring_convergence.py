@@ -172,9 +172,21 @@ OTHER_LINES = (("psnr_with_noise", "x--", "plain"), ("psnr_decorrelated", "+:", 
 
 def plot(report: dict, path: Path) -> None:
     labels = list(report["classes"])
-    fig = Figure(figsize=(3.0 * len(labels), 3.2))
-    axes = fig.subplots(1, len(labels), squeeze=False)[0]
+    ring = report.get("ring") or {}
+    fig = Figure(figsize=(3.0 * (len(labels) + bool(ring)), 3.2))
+    axes = fig.subplots(1, len(labels) + bool(ring), squeeze=False)[0]
     scales = report["scales"]
+    if ring:  # the ring around objects (`--ring`): each row's mean ring PSNR against the scale
+        ax = axes[-1]
+        for name, entry in ring.items():
+            ax.plot(scales, [entry["mean_psnr"][str(n)] for n in scales], "s-", ms=3, label=name)
+        ax.set_title(f"ring around objects ({max(e['cases'] for e in ring.values())} cases)", fontsize=9)
+        ax.set_xscale("log", base=2)
+        ax.set_xticks(scales)
+        ax.set_xticklabels([f"{n}x" for n in scales], fontsize=6)
+        ax.set_xlabel(f"samples (x {report.get('ring_spp')})", fontsize=7)
+        ax.legend(fontsize=6)
+        axes = axes[:-1]
     for ax, label in zip(axes, labels, strict=True):
         entry = report["classes"][label]
         for row, r in entry["rows"].items():
