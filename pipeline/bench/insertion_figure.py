@@ -41,9 +41,10 @@ from pipeline.models.insertion import insert_into, place_object, prepare_view
 from pipeline.models.light_net import load_light_export
 from pipeline.models.material_net import load_material_export
 from pipeline.models.shadows import proxy_pixels
+from pipeline.ops.brdf import LUMA
 
 CHANGED = 0.02  # a room pixel Mitsuba changes: its luminance moves by more than this share of the photo's
-LUMINANCE = np.array([0.2126, 0.7152, 0.0722])
+LUMINANCE = np.asarray(LUMA)
 
 
 def world_shapes(shapes: list, world_from_view: np.ndarray) -> list:

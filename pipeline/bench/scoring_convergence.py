@@ -170,6 +170,13 @@ def headline(summary: dict, spp: dict[str, int], tolerance: float) -> list[dict]
 OTHER_LINES = (("psnr_with_noise", "x--", "plain"), ("psnr_decorrelated", "+:", "decorrelated"))
 
 
+def _scale_axis(ax, scales: list[int]) -> None:
+    """A log2 x axis with one tick per measured scale, labelled `<n>x`."""
+    ax.set_xscale("log", base=2)
+    ax.set_xticks(scales)
+    ax.set_xticklabels([f"{n}x" for n in scales], fontsize=6)
+
+
 def plot(report: dict, path: Path) -> None:
     labels = list(report["classes"])
     ring = report.get("ring") or {}
@@ -181,9 +188,7 @@ def plot(report: dict, path: Path) -> None:
         for name, entry in ring.items():
             ax.plot(scales, [entry["mean_psnr"][str(n)] for n in scales], "s-", ms=3, label=name)
         ax.set_title(f"ring around objects ({max(e['cases'] for e in ring.values())} cases)", fontsize=9)
-        ax.set_xscale("log", base=2)
-        ax.set_xticks(scales)
-        ax.set_xticklabels([f"{n}x" for n in scales], fontsize=6)
+        _scale_axis(ax, scales)
         ax.set_xlabel(f"samples (x {report.get('ring_spp')})", fontsize=7)
         ax.legend(fontsize=6)
         axes = axes[:-1]
@@ -195,9 +200,7 @@ def plot(report: dict, path: Path) -> None:
                 if f"mean_{variant}" in r:  # the same renders' other PSNRs (plain: noise included)
                     other = [r[f"mean_{variant}"][str(n)] for n in scales]
                     ax.plot(scales, other, style, ms=3, color=line.get_color(), label=f"{row}, {name} PSNR")
-        ax.set_xscale("log", base=2)
-        ax.set_xticks(scales)
-        ax.set_xticklabels([f"{n}x" for n in scales], fontsize=6)
+        _scale_axis(ax, scales)
         ax.set_xlabel("samples (x the row's configured)", fontsize=7)
         ax.set_title(f"{label} ({entry['cases']} cases)", fontsize=9)
     axes[0].set_ylabel("mean PSNR (dB)")
