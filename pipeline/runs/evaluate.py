@@ -8,6 +8,11 @@ per-image CSVs `<model>_iiw.csv` and `<model>_nyuv2.csv`, the synthetic splits' 
 `<model>_<entry>_views.csv` (each model scored once per split, beside its baselines:
 `synthetic_splits`), and `<model>_nyuv2_cases.png` (best and worst images). A per-image score that is not
 finite is left out of its mean and counted in `<model>/<bench>/nonfinite`.
+
+Every interval the results page prints for these models is published here (95 %, `bootstrap` resamples of
+images, seed `seed`): each mean's (`<model>/<bench>/<metric>_lo`, `_hi`), the fine-tuned model minus the
+trained one paired by image (`finetuned_minus_trained/<bench>/<metric>`, `_lo`, `_hi`, `_n`), each gate
+ratio's and LightNet minus every other predictor (`systems.out_of_distribution`).
 """
 
 from __future__ import annotations
@@ -22,8 +27,10 @@ from omegaconf import DictConfig
 from pipeline.data.formats.photo import srgb8_to_linear
 from pipeline.data.standins import benchmark_roots
 from pipeline.metrics import normal as normal_metrics
+from pipeline.metrics.bootstrap import mean_bootstrap, paired_bootstrap
 from pipeline.models.material_net import load_material_export, predict_maps
 from pipeline.systems.evaluation import BENCHMARKS, BenchmarkEvaluation, NYUTest, test_loaders
+from pipeline.systems.out_of_distribution import interval_keys
 from pipeline.systems.trainer import stage_trainer
 from pipeline.tracking import publish, stage_run
 from pipeline.tracking.figures import ranked_cases
@@ -107,6 +114,38 @@ def finite_means(rows: list[dict], skip: tuple = ("id", "index")) -> tuple[dict[
             raise ValueError(f"evaluate: every per-image {k!r} is non-finite ({len(rows)} images)")
         means[k] = float(np.mean(vals))
     return means, bad
+
+
+def mean_intervals(rows: list[dict], resamples: int, seed: int, skip: tuple = ("id", "index")) -> dict[str, float]:
+    """Per score column, the 95 % bootstrap interval over images of its mean over the finite values
+    (`<metric>_lo`, `_hi`; none from fewer than two images); the mean itself is `finite_means`'."""
+    out = {}
+    for k in (k for k in rows[0] if k not in skip):
+        values = np.array([r[k] for r in rows], np.float64)
+        values = values[np.isfinite(values)]
+        ci = mean_bootstrap(values, resamples, seed) if len(values) else {"lo": float("nan")}
+        if np.isfinite(ci["lo"]):  # under two images there is no spread to resample: no interval
+            out.update({f"{k}_lo": ci["lo"], f"{k}_hi": ci["hi"]})
+    return out
+
+
+def paired_intervals(
+    before: list[dict], after: list[dict], resamples: int, seed: int, skip: tuple = ("id", "index")
+) -> dict[str, float]:
+    """`after` minus `before` per score column, paired by image (both score the same images in the same
+    order, else nothing: the difference of two means over different images is no paired figure), over
+    the images where both are finite: `<metric>` with `_lo`, `_hi` (95 % bootstrap) and `_n`
+    (`interval_keys`)."""
+    ids = [k for k in before[0] if k in skip][:1]
+    if len(before) != len(after) or any(a[k] != b[k] for a, b in zip(before, after, strict=True) for k in ids):
+        return {}
+    out = {}
+    for k in (k for k in before[0] if k not in skip and k in after[0]):
+        diff = np.array([b[k] - a[k] for a, b in zip(before, after, strict=True)], np.float64)
+        diff = diff[np.isfinite(diff)]
+        if len(diff):
+            out.update(interval_keys(k, paired_bootstrap(diff, resamples, seed)))
+    return out
 
 
 def case_panels(net, meta, nyu: NYUTest, rows: list[dict], key: str, k: int) -> list[dict]:
@@ -211,7 +250,8 @@ def run(cfg: DictConfig) -> dict[str, float]:
     )
     sources = {"iiw": bench["iiw"][1], "nyuv2": bench["nyuv2"][1]}
     report = Path(cfg.report_dir)
-    results, metrics = {}, {}
+    results, metrics, scored = {}, {}, {}
+    resamples = int(cfg.bootstrap)
     with stage_run("evaluate", cfg, tags={"data_source": f"{sources['iiw']}+{sources['nyuv2']}+synthetic"}) as run:
         mlflow.log_params({"iiw_source": sources["iiw"], "nyuv2_source": sources["nyuv2"]})
         loaders = test_loaders(bench["iiw"][0], bench["nyuv2"][0])  # read once, used per model
@@ -226,21 +266,25 @@ def run(cfg: DictConfig) -> dict[str, float]:
             )
             trainer.test(system, dataloaders=loaders, verbose=False)
             r = {}
+            scored[name] = {"nyu" if key == "nyuv2" else key: rows for key, rows in system.rows.items()}
+            scored[name]["synthetic"] = model_columns(synthetic_rows[name])
             for key, rows in system.rows.items():
                 _write_csv(report / f"{name}_{key}.csv", rows)
+            for prefix, rows in scored[name].items():
                 means, bad = finite_means(rows)
-                prefix = "nyu" if key == "nyuv2" else key
                 r.update({f"{prefix}/{k}": v for k, v in means.items()})
+                r.update({f"{prefix}/{k}": v for k, v in mean_intervals(rows, resamples, int(cfg.seed)).items()})
                 r[f"{prefix}/nonfinite"] = float(bad)
             r.update({f"nyu/{k}": v for k, v in normal_metrics.pooled_stats(system.pooled_angles).items()})
-            means, bad = finite_means(model_columns(synthetic_rows[name]))
-            r.update({f"synthetic/{k}": v for k, v in means.items()})
-            r["synthetic/nonfinite"] = float(bad)
             results[name] = r
             metrics.update({f"{name}/{k}": v for k, v in r.items()})
             panels = case_panels(net, meta, nyu, system.rows["nyuv2"], "normal_deg", int(cfg.figure_cases))
             figure = ranked_cases(panels, report / f"{name}_nyuv2_cases.png")
             mlflow.log_artifact(str(figure), "figures")
+        if {"trained", "finetuned"} <= set(scored):  # what fine-tuning changed, paired by image
+            for bench, rows in scored["trained"].items():
+                diff = paired_intervals(rows, scored["finetuned"][bench], resamples, int(cfg.seed))
+                metrics.update({f"finetuned_minus_trained/{bench}/{k}": v for k, v in diff.items()})
         (report / "table.md").write_text(markdown_table(results, sources))
         (report / "sources.json").write_text(json.dumps(sources, indent=1) + "\n")
         publish(report, metrics)

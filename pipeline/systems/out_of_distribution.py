@@ -7,8 +7,8 @@ trained on) beside the in-distribution synthetic test split, scored by the same 
   would reach), and per (baseline, map) the ratio model / baseline of their means over views with a
   bootstrap interval that resamples views (`ratio_bootstrap`): below 1, better than the baseline.
 - LightNet: `train_lighting`'s test metrics per view (light errors at every probe texel, the re-render
-  PSNR) and the content-blind baselines' on the same views and draws (`baseline_metrics`), and LightNet
-  minus each constant light on the re-render PSNR, paired by view.
+  PSNR) and the content-blind baselines' and probe oracles' on the same views and draws
+  (`baseline_metrics`), and LightNet minus each of them on every metric, paired by view.
 """
 
 from __future__ import annotations
@@ -23,7 +23,6 @@ from pipeline.metrics.synthetic import material_metrics
 from pipeline.systems.material_baselines import BASELINE_MAPS, MaterialBaselines
 
 SPLITS = {"synthetic": "test", "synthetic_ood": "test"}  # entry -> split of its preprocess root
-LIGHT_BASELINES = ("constant", "scaled_constant")  # compared with LightNet on the re-render, paired
 
 
 @torch.no_grad()
@@ -82,17 +81,32 @@ def lighting_view_rows(system, dataset: ShardDataset, constants) -> list[dict]:
 
 
 def lighting_summary(rows: list[dict], resamples: int, seed: int) -> dict[str, float]:
-    """Means over views of every column, and LightNet minus each `LIGHT_BASELINES` light on the
-    re-render PSNR (dB), paired by view (`minus_<baseline>/render_psnr`, `_lo`, `_hi`)."""
+    """Means over views of every column, and LightNet minus every other predictor of the rows (the
+    constants and the probe oracles) on each metric both score, paired by view over the views where the
+    difference is finite (a view without free probes scores no free metric): `minus_<predictor>/<metric>`
+    with `_lo`, `_hi` (95 % bootstrap over views) and `_n` (views scored). These are the intervals the
+    results page prints; it computes none of its own."""
     out = {}
     for k in (k for k in rows[0] if k != "id"):
         values = np.array([r.get(k, np.nan) for r in rows], np.float64)
         if np.isfinite(values).any():
             out[k] = float(values[np.isfinite(values)].mean())
-    for name in LIGHT_BASELINES:
-        diff = [r["model/render_psnr"] - r[f"{name}/render_psnr"] for r in rows]
-        ci = paired_bootstrap(diff, resamples, seed)
-        out[f"minus_{name}/render_psnr"] = ci["diff"]
-        out[f"minus_{name}/render_psnr_lo"] = ci["lo"]
-        out[f"minus_{name}/render_psnr_hi"] = ci["hi"]
+    for column in (k for k in rows[0] if k != "id" and not k.startswith("model/")):
+        who, metric = column.split("/", 1)
+        if f"model/{metric}" not in rows[0]:
+            continue
+        diff = np.array([r[f"model/{metric}"] - r.get(column, np.nan) for r in rows], np.float64)
+        diff = diff[np.isfinite(diff)]
+        if not len(diff):
+            continue
+        out.update(interval_keys(f"minus_{who}/{metric}", paired_bootstrap(diff, resamples, seed)))
+    return out
+
+
+def interval_keys(key: str, ci: dict[str, float]) -> dict[str, float]:
+    """A paired difference as published metrics: `<key>` (the mean), `<key>_n` (units) and, when there were
+    two or more units to resample, `<key>_lo`, `<key>_hi` (a metric file holds finite numbers only)."""
+    out = {key: ci["diff"], f"{key}_n": ci["n"]}
+    if np.isfinite(ci["lo"]):
+        out.update({f"{key}_lo": ci["lo"], f"{key}_hi": ci["hi"]})
     return out

@@ -1,8 +1,8 @@
 """docs/results.md, written by the `report` stage from the files the stages and benches wrote under
-reports/: nothing in it is typed by hand, and every interval in it is computed here by
-`pipeline.metrics.bootstrap` from per-view scores the stages wrote (or was computed by the stage that
-wrote it, with the same bootstrap). A test renders it from the committed reports and requires it to equal
-the committed file, so it cannot drift from them.
+reports/: nothing in it is typed by hand, and it computes no interval of its own: each is read from the
+metrics the stage or bench that made it published (`evaluate` publishes the stage sections' intervals over
+the test views and images, `edit` the insertion's, the `report` stage the ablation claims'). A test renders
+it from the committed reports and requires it to equal the committed file, so it cannot drift from them.
 
 `render(reports, ablation_tables)` returns the document; every section reads only its own files and says
 which, and a section whose files are missing says so instead of printing numbers.
@@ -18,9 +18,7 @@ from pathlib import Path
 
 import numpy as np
 
-from pipeline.metrics.bootstrap import mean_bootstrap, paired_bootstrap, ratio_bootstrap
-
-RESAMPLES, SEED = 2000, 0  # every interval here: 95 %, 2000 resamples of views, seed 0
+EVALUATE = "evaluate/metrics.json"  # the stage that publishes the intervals of the stage sections
 
 MATERIAL_METRICS = ("albedo_mse", "normal_angle_deg", "roughness_mse", "metallic_mse", "depth_log_mse")
 LIGHT_METRICS = (
@@ -135,25 +133,20 @@ def section_material(reports: Path, facts: dict | None = None) -> list[str]:
     lines = ["## MaterialNet (`train_material`, test split)", ""]
     if m is None:
         return lines + missing("section", path)
-    views = read_views(reports / "train_material/test_views.csv")
+    ev = read_json(reports / EVALUATE) or {}
     lines += [
-        f"From `{shown(reports, path)}`"
-        + (" and the per-view scores in `reports/train_material/test_views.csv`." if views else "."),
+        f"From `{shown(reports, path)}`.",
         "Gate ratio: the model's error over the baseline's on the same views (lower is better); the gate",
-        "passes when every ratio is at most the stage's margin."
-        + (" Intervals: 95 % bootstrap over test views, model and baseline resampled together." if views else ""),
+        "passes when every ratio is at most the stage's margin. Intervals: 95 % bootstrap over test views,",
+        f"model and baseline resampled together, from `reports/{EVALUATE}` (`evaluate` scores this model on",
+        "the same views: `reports/evaluate/trained_synthetic_views.csv`).",
         "",
     ]
     rows = []
     for metric in MATERIAL_METRICS:
         for key in sorted(k for k in m if k.startswith("baseline/") and k.endswith(f"/{metric}")):
             base = key.split("/")[1]
-            ci = "n/a"
-            if views and f"model/{metric}" in views and f"{base}/{metric}" in views:
-                a, b = views[f"model/{metric}"], views[f"{base}/{metric}"]
-                scored = np.isfinite(a) & np.isfinite(b)
-                r = ratio_bootstrap(a[scored], b[scored], RESAMPLES, SEED)
-                ci = interval(r["lo"], r["hi"])
+            ci = published_interval(ev, f"trained/synthetic/gate/{base}/{metric}")
             ratio = m.get(f"gate/{base}/{metric}")
             rows.append([metric, num(m.get(f"test/{metric}")), base, num(m[key]), num(ratio), ci])
             if facts is not None:
@@ -198,15 +191,19 @@ def section_lighting(reports: Path, facts: dict | None = None) -> list[str]:
         lines += ["", "Re-render PSNR at probe pixels (dB): " + ", ".join(f"{k} {num(v)}" for k, v in probes.items())]
     views = read_views(reports / "train_lighting/test_views.csv")
     if views:
-        lines += ["", *paired_rows(views, "train_lighting/test_views.csv", facts)]
+        published = read_json(reports / EVALUATE) or {}
+        lines += ["", *paired_rows(views, published, "lightnet/synthetic", "train_lighting/test_views.csv", facts)]
     lines.append("")
     return lines
 
 
-def paired_rows(views: dict[str, np.ndarray], source: str, facts: dict | None = None) -> list[str]:
+def paired_rows(
+    views: dict[str, np.ndarray], published: dict, prefix: str, source: str, facts: dict | None = None
+) -> list[str]:
     """Paired per-view differences of the model's columns (`model/<metric>`, or `<mode>/<metric>` for
-    the first mode) against every other predictor's same metric, with bootstrap intervals; each is also
-    recorded in `facts["paired"]` under (metric, other predictor) with the two per-view means."""
+    the first mode) against every other predictor's same metric, as `evaluate` published them for the
+    same views (`<prefix>/minus_<predictor>/<metric>` with `_lo`, `_hi`, `_n`); each is also recorded in
+    `facts["paired"]` under (metric, other predictor) with the two per-view means over the views scored."""
     cols = [c for c in views if "/" in c]
     predictors = list(dict.fromkeys(c.split("/")[0] for c in cols))
     if not predictors:
@@ -215,23 +212,28 @@ def paired_rows(views: dict[str, np.ndarray], source: str, facts: dict | None = 
     rows = []
     for col in cols:
         who, metric = col.split("/", 1)
-        if who == model or f"{model}/{metric}" not in views:
+        key = f"{prefix}/minus_{who}/{metric}"
+        if who == model or f"{model}/{metric}" not in views or key not in published:
             continue
-        diff = views[f"{model}/{metric}"] - views[col]
-        scored = np.isfinite(diff)  # a view with nothing to score (e.g. no free probes) holds NaN
-        if not scored.any():
-            continue
-        d = paired_bootstrap(diff[scored], RESAMPLES, SEED)
-        rows.append([metric, f"{model} - {who}", f"{int(d['n'])}", signed(d["diff"]), interval(d["lo"], d["hi"])])
+        d = {k: published.get(f"{key}{s}", float("nan")) for k, s in (("diff", ""), ("lo", "_lo"), ("hi", "_hi"))}
+        d["n"] = published.get(f"{key}_n", float("nan"))
+        rows.append([metric, f"{model} - {who}", num(d["n"]), signed(d["diff"]), interval(d["lo"], d["hi"])])
         if facts is not None:
+            scored = np.isfinite(views[f"{model}/{metric}"] - views[col])
             means = (float(views[f"{model}/{metric}"][scored].mean()), float(views[col][scored].mean()))
             facts.setdefault("paired", {})[(metric, who)] = {**d, "means": means}
     head = [
-        f"Paired per-view differences from `reports/{source}`: the mean over views of each view's own value",
-        "(95 % bootstrap over views):",
+        f"Paired per-view differences over the views of `reports/{source}`: the mean over views of each",
+        f"view's own value (95 % bootstrap over views, published by `evaluate` in `reports/{EVALUATE}`):",
         "",
     ]
     return head + md_table(["metric", "difference", "views scored", "mean", "95 % interval"], rows)
+
+
+def published_interval(published: dict, key: str) -> str:
+    """`[lo, hi]` of the published `<key>_lo`, `<key>_hi`, or n/a."""
+    lo, hi = published.get(f"{key}_lo"), published.get(f"{key}_hi")
+    return "n/a" if lo is None or hi is None else interval(lo, hi)
 
 
 def section_edit(reports: Path, facts: dict | None = None) -> list[str]:
@@ -350,8 +352,8 @@ def section_evaluate(reports: Path) -> list[str]:
         return lines + missing("section", path)
     src = read_json(reports / "evaluate/sources.json") or {}
     lines += [
-        f"From `{shown(reports, path)}` and the per-image CSVs beside it; means with their 95 % bootstrap",
-        "interval over images, and the fine-tuned model minus the trained one paired by image.",
+        f"From `{shown(reports, path)}` (the per-image scores are the CSVs beside it): means with their 95 %",
+        "bootstrap interval over images, and the fine-tuned model minus the trained one paired by image.",
     ]
     if src:
         lines.append("Data sources: " + ", ".join(f"{k}: {v}" for k, v in sorted(src.items()) if isinstance(v, str)))
@@ -361,24 +363,28 @@ def section_evaluate(reports: Path) -> list[str]:
         trained, tuned = (model_scores(read_views(reports / f"evaluate/{m}_{csv_name}.csv")) for m in MODELS)
         if trained is None or tuned is None:
             continue
-        id_col = next(iter(trained))
-        same_views = np.array_equal(trained[id_col], tuned[id_col])
         for metric in list(trained)[1:]:
             if metric not in tuned:
                 continue
-            a, b = mean_bootstrap(trained[metric], RESAMPLES, SEED), mean_bootstrap(tuned[metric], RESAMPLES, SEED)
-            d = paired_bootstrap(tuned[metric] - trained[metric], RESAMPLES, SEED) if same_views else None
+            cells = [
+                f"{num(m.get(f'{model}/{bench}/{metric}'))} {published_interval(m, f'{model}/{bench}/{metric}')}"
+                for model in MODELS
+            ]
+            diff = f"finetuned_minus_trained/{bench}/{metric}"
             rows.append(
                 [
                     f"{bench} {metric}",
                     str(len(trained[metric])),
-                    f"{num(a['mean'])} {interval(a['lo'], a['hi'])}",
-                    f"{num(b['mean'])} {interval(b['lo'], b['hi'])}",
-                    "n/a (different images)" if d is None else f"{signed(d['diff'])} {interval(d['lo'], d['hi'])}",
+                    *cells,
+                    f"{signed(m[diff])} {published_interval(m, diff)}" if diff in m else "n/a (different images)",
                 ]
             )
     lines += md_table(["metric", "images", "trained", "fine-tuned", "fine-tuned - trained"], rows)
-    pooled = {k: v for k, v in m.items() if "pooled" in k or "whdr" in k}
+    pooled = {
+        k: v
+        for k, v in m.items()
+        if k.split("/")[0] in MODELS and ("pooled" in k or "whdr" in k) and not k.endswith(("_lo", "_hi"))
+    }
     lines += ["", "Pooled figures: " + ", ".join(f"{k} {num(v)}" for k, v in sorted(pooled.items())), ""]
     return lines
 
@@ -393,16 +399,11 @@ OOD_GATES = (
 OOD_ENTRIES = (("synthetic", "test"), ("synthetic_ood", "out of distribution"))
 
 
-def ratio_cell(views: dict[str, np.ndarray] | None, metric: str, baseline: str) -> str:
-    """mean(model) / mean(baseline) over the views where both are finite, with its interval."""
-    if views is None or f"model/{metric}" not in views or f"{baseline}/{metric}" not in views:
-        return "n/a"
-    a, b = views[f"model/{metric}"], views[f"{baseline}/{metric}"]
-    ok = np.isfinite(a) & np.isfinite(b)
-    if not ok.any() or b[ok].mean() <= 0:
-        return "n/a"
-    r = ratio_bootstrap(a[ok], b[ok], RESAMPLES, SEED)
-    return f"{num(r['ratio'])} {interval(r['lo'], r['hi'])}"
+def ratio_cell(published: dict, model: str, entry: str, metric: str, baseline: str) -> str:
+    """mean(model) / mean(baseline) over the views where both are finite, with its interval, as `evaluate`
+    published them (`<model>/<entry>/gate/<baseline>/<metric>`)."""
+    key = f"{model}/{entry}/gate/{baseline}/{metric}"
+    return "n/a" if key not in published else f"{num(published[key])} {published_interval(published, key)}"
 
 
 def section_out_of_distribution(reports: Path) -> list[str]:
@@ -425,13 +426,12 @@ def section_out_of_distribution(reports: Path) -> list[str]:
         "means over views with its 95 % interval; below 1 is better than the baseline.",
         "",
     ]
-    models = ("trained", "finetuned")
-    views = {(m, e): read_views(reports / f"evaluate/{m}_{e}_views.csv") for m in models for e, _ in OOD_ENTRIES}
-    header = ["map / baseline", *(f"{m}, {label}" for m in models for _, label in OOD_ENTRIES)]
+    published = read_json(reports / EVALUATE) or {}
+    header = ["map / baseline", *(f"{m}, {label}" for m in MODELS for _, label in OOD_ENTRIES)]
     rows = [
         [
             f"{metric} / {baseline}",
-            *(ratio_cell(views[(m, e)], metric, baseline) for m in models for e, _ in OOD_ENTRIES),
+            *(ratio_cell(published, m, e, metric, baseline) for m in MODELS for e, _ in OOD_ENTRIES),
         ]
         for metric, baseline in OOD_GATES
     ]
@@ -453,10 +453,10 @@ def section_out_of_distribution(reports: Path) -> list[str]:
                 cells.append(num(model.mean()) if len(model) else "n/a")
                 base = v.get(f"scaled_constant/{key}")
                 cells.append(num(base[np.isfinite(base)].mean()) if base is not None else "n/a")
-                diff = v[f"model/{key}"] - base if base is not None else np.array([np.nan])
-                diff = diff[np.isfinite(diff)]
-                d = paired_bootstrap(diff, RESAMPLES, SEED) if len(diff) else None
-                cells.append("n/a" if d is None else f"{signed(d['diff'])} {interval(d['lo'], d['hi'])}")
+                diff = f"lightnet/{e}/minus_scaled_constant/{key}"
+                cells.append(
+                    f"{signed(published[diff])} {published_interval(published, diff)}" if diff in published else "n/a"
+                )
             rows.append([label, *cells])
         header = ["metric"] + [
             f"{who}, {label}" for _, label in OOD_ENTRIES for who in ("LightNet", "scaled constant", "difference")
@@ -589,7 +589,7 @@ BENCH_HEADLINES = {
 
 
 # benches whose figure the page shows (the others' PNGs lie beside their JSONs)
-BENCH_FIGURES = ("real_photo", "insertion_figure")
+BENCH_FIGURES = ("real_photo", "insertion_figure", "pipeline_time")
 
 
 def section_benches(reports: Path, profile: str) -> list[str]:

@@ -80,11 +80,63 @@ def test_evaluate_reports_both_models_with_their_sources(evaluated):
     assert (runs["tags.data_source"] == "standin-iiw+standin-nyuv2+synthetic").any()
 
 
-def _csv_means(path) -> dict[str, float]:
-    """Mean of every score column of a per-image CSV (all finite here: the caller checks `nonfinite`)."""
+BENCH_FILES = {"iiw": "iiw", "nyu": "nyuv2", "synthetic": "synthetic_views"}  # metrics prefix -> CSV name
+
+
+def test_evaluate_publishes_every_interval_the_results_page_prints(evaluated):
+    """The page computes no interval: each mean's, the fine-tuned minus trained differences paired by image
+    and LightNet minus every other predictor paired by view are the stage's, and agree with its CSVs."""
+    tmp, _, ev = evaluated
+    report = tmp / "reports" / "evaluate"
+
+    def within(key: str, images: int) -> bool:  # an interval from two images on; none from one (no spread)
+        if images < 2:
+            return f"{key}_lo" not in ev and f"{key}_hi" not in ev
+        return ev[f"{key}_lo"] <= ev[key] <= ev[f"{key}_hi"]
+
+    images = {b: (report / f"trained_{f}.csv").read_text().count("\n") - 1 for b, f in BENCH_FILES.items()}
+    assert max(images.values()) >= 2  # the micro data hold an interval to check
+    for model in ("trained", "finetuned"):
+        for key in ("iiw/whdr_gamma", "nyu/normal_deg", "synthetic/albedo_mse"):
+            assert within(f"{model}/{key}", images[key.split("/")[0]])
+    for bench in ("nyu", "iiw"):
+        before, after = (_csv_means(report / f"{m}_{BENCH_FILES[bench]}.csv") for m in ("trained", "finetuned"))
+        for metric in before:
+            key = f"finetuned_minus_trained/{bench}/{metric}"
+            assert ev[key] == pytest.approx(after[metric] - before[metric], abs=1e-9)
+            assert ev[f"{key}_n"] == images[bench] and within(key, images[bench])
+    for entry in ("synthetic", "synthetic_ood"):
+        means = _csv_means(report / f"lightnet_{entry}_views.csv", nan_ok=True)
+        others = {k.split("/")[0] for k in means if k.endswith("/surf_light_nmse") and not k.startswith("model/")}
+        assert {"constant", "scaled_constant", "probe_mean_oracle"} <= others
+        for who in others:
+            key = f"lightnet/{entry}/minus_{who}/surf_light_nmse"
+            assert ev[key] == pytest.approx(means["model/surf_light_nmse"] - means[f"{who}/surf_light_nmse"], abs=1e-6)
+            assert ev[f"{key}_lo"] <= ev[key] <= ev[f"{key}_hi"] and ev[f"{key}_n"] >= 2
+
+
+def test_paired_intervals_pair_by_image_or_not_at_all():
+    from pipeline.runs.evaluate import mean_intervals, paired_intervals
+
+    before = [{"index": i, "err": float(i), "miss": float("nan") if i == 0 else 1.0} for i in range(6)]
+    after = [{**r, "err": r["err"] - 2.0} for r in before]
+    d = paired_intervals(before, after, 100, 0)
+    assert d["err"] == pytest.approx(-2.0) and d["err_lo"] == pytest.approx(-2.0) and d["err_n"] == 6
+    assert d["miss_n"] == 5  # a non-finite image is left out of that column only
+    assert paired_intervals(before, after[::-1], 100, 0) == {}  # other images in another order: no pairing
+    m = mean_intervals(before, 100, 0)
+    assert m["err_lo"] < 2.5 < m["err_hi"] and "index_lo" not in m
+
+
+def _csv_means(path, nan_ok: bool = False) -> dict[str, float]:
+    """Mean of every score column of a per-image CSV (all finite unless `nan_ok`: the caller checks
+    `nonfinite`); with `nan_ok`, over the finite values."""
     with open(path, newline="") as f:
         rows = list(csv.DictReader(f))
-    return {k: statistics.fmean(float(r[k]) for r in rows) for k in rows[0] if k not in ("id", "index")}
+    keys = [k for k in rows[0] if k not in ("id", "index")]
+    if not nan_ok:
+        return {k: statistics.fmean(float(r[k]) for r in rows) for k in keys}
+    return {k: float(np.nanmean([float(r[k]) for r in rows])) for k in keys}
 
 
 def test_whdr_command_line(evaluated, capsys):
