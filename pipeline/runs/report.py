@@ -32,6 +32,7 @@ from omegaconf import DictConfig, OmegaConf
 from pipeline.metrics.verdicts import decide, minimal_detectable_effect, power, seed_effect, seeds_needed
 from pipeline.tracking import publish, stage_run
 from pipeline.tracking.figures import pareto_figure
+from pipeline.tracking.results_page import read_json
 from pipeline.tracking.results_page import render as render_results
 
 # (key, label, higher is better) of the table's columns
@@ -214,7 +215,38 @@ def expectations(preset: dict) -> list[dict]:
     return [{**primary, "role": "primary"}, *({**e, "role": "secondary"} for e in secondary)]
 
 
-def claim_verdicts(runs: dict, alpha: float = 0.05) -> dict[tuple[str, str], dict]:
+REFERENCE_TOLERANCE = 0.10  # a MaterialNet reference within 10 % of the main model's normal error is comparable
+
+
+def reference_comparability(runs: dict, main_material: dict | None) -> dict[str, str]:
+    """{preset: why} for every MaterialNet preset whose reference (trained under the ablation schedule)
+    is not comparable with the main model the paper's claim is about: its mean test normal error over
+    seeds more than `REFERENCE_TOLERANCE` above the main `train_material` model's
+    (`main_material`: reports/train_material/metrics.json; None: nothing to compare, nothing marked).
+    A claim judged against a half-trained reference would say nothing about the trained method."""
+    main = (main_material or {}).get("test/normal_angle_deg")
+    if main is None or not math.isfinite(main):
+        return {}
+    out = {}
+    for name, seeds in runs.items():
+        first = seeds[next(iter(seeds))]["preset"]
+        reference = runs.get(first.get("reference"), {})
+        unavailable = any("unavailable" in d["preset"] for d in seeds.values())  # says so itself
+        if first["stage"] != "train_material" or name == first.get("reference") or not reference or unavailable:
+            continue
+        ref = [d["metrics"].get("test/normal_angle_deg", float("nan")) for d in reference.values()]
+        ref_mean = float(np.mean(ref))
+        if not math.isfinite(ref_mean) or ref_mean > main * (1 + REFERENCE_TOLERANCE):
+            out[name] = (
+                f"reference `{first['reference']}` normal error {ref_mean:.1f}° against the main model's "
+                f"{main:.1f}° (more than {REFERENCE_TOLERANCE:.0%} above)"
+            )
+    return out
+
+
+def claim_verdicts(
+    runs: dict, alpha: float = 0.05, not_comparable: dict[str, str] | None = None
+) -> dict[tuple[str, str], dict]:
     """Every (preset, claim metric) of every preset with a paper claim: {(preset, metric): compare()'s
     fields + "role", "metric", and for the primary metrics "p_holm", "verdict", "effect_size", "power",
     "mde", "seeds_needed"}. Only the primary metrics (one per claim) form the Holm family; a secondary
@@ -225,14 +257,16 @@ def claim_verdicts(runs: dict, alpha: float = 0.05) -> dict[tuple[str, str], dic
     `mde`: the minimal detectable effect at power 0.8 at that level and spread; `seeds_needed`: the seeds
     that would give power 0.8 at `effect_size` (NaN: over 64 seeds, or 1024 views); all three post hoc,
     from the observed spread. A seed whose run diverged is counted (`diverged`) and makes the claim
-    `diverged`, never dropped."""
+    `diverged`, never dropped. A preset in `not_comparable` ({preset: why}, `reference_comparability`)
+    is left out of the family and reads `not comparable` with its reason (`why`)."""
+    not_comparable = not_comparable or {}
     claims, found, secondary = {}, {}, {}
     for name, seeds in runs.items():
         first = seeds[next(iter(seeds))]["preset"]
         unavailable = any("unavailable" in d["preset"] for d in seeds.values())
         for e in expectations(first):
             c = {"seeds": 0, "diffs": [], "unit": "seeds"}
-            if not unavailable:
+            if not unavailable and name not in not_comparable:
                 c = compare(runs, name, first["reference"], e["metric"])
                 if first.get("weights_from") and not c["diverged"]:  # render-time: views are the units
                     c = compare_by_views(runs, name, first["reference"], e["metric"]) or c
@@ -274,6 +308,8 @@ def claim_verdicts(runs: dict, alpha: float = 0.05) -> dict[tuple[str, str], dic
             "mde": mde,
             "seeds_needed": float("nan") if needed is None else float(needed),
         }
+        if name in not_comparable:
+            out[(name, e["metric"])].update(verdict="not comparable", why=not_comparable[name])
     return {**out, **secondary}
 
 
@@ -396,6 +432,8 @@ def verdict_text(v: dict) -> str:
         return f"diverged ({int(v['diverged'])} of {int(v['diverged'] + v['seeds'])} seeds): unstable"
     if verdict == "not testable" and v["seeds"] >= 2 and v.get("se") == 0.0:
         return "not testable: every seed the same difference"
+    if verdict == "not comparable":
+        return f"not comparable: {v['why']}"
     return verdict
 
 
@@ -573,13 +611,19 @@ def ablation_tables(
     ]
 
 
+def main_material(reports: Path) -> dict | None:
+    """The main `train_material` model's metrics (reports/train_material/metrics.json), None if absent; a
+    corrupt file raises naming it."""
+    return read_json(reports / "train_material" / "metrics.json")
+
+
 def results_markdown(reports: Path, ablate_dir: Path, profile: str, claims: dict | None = None) -> str:
     """docs/results.md from the reports and the claims (`read_runs`) alone (what the stage writes; the test
     renders it the same way)."""
     runs = read_runs(ablate_dir, claims)
     light_rows, _ = table({**runs, **threshold_runs(runs)}, "train_lighting", LIGHT_COLUMNS)
     mat_rows, _ = table(runs, "train_material", MATERIAL_COLUMNS)
-    verdicts = claim_verdicts(runs)
+    verdicts = claim_verdicts(runs, not_comparable=reference_comparability(runs, main_material(reports)))
     claim_rows, _ = claims_table(runs, verdicts)
     tables = ablation_tables(light_rows, mat_rows, claim_rows, runs, "../reports/ablate")
     counts: dict[str, int] = {}
@@ -608,7 +652,8 @@ def run(cfg: DictConfig) -> dict[str, float]:
     out.mkdir(parents=True, exist_ok=True)
     light_rows, light_numbers = table({**runs, **threshold_runs(runs)}, "train_lighting", LIGHT_COLUMNS)
     mat_rows, mat_numbers = table(runs, "train_material", MATERIAL_COLUMNS)
-    claim_rows, claim_numbers = claims_table(runs)
+    verdicts = claim_verdicts(runs, not_comparable=reference_comparability(runs, main_material(reports)))
+    claim_rows, claim_numbers = claims_table(runs, verdicts)
     doc = [
         f"# Ablations ({cfg.profile_name})",
         "",
@@ -625,7 +670,9 @@ def run(cfg: DictConfig) -> dict[str, float]:
         "one family tested at 5 % family-wise by Holm's procedure; secondary metrics are reported beside it",
         "without a verdict, so adding one never weakens another claim's test. Verdicts: supported,",
         "contradicted, inconclusive, not testable (fewer than 2 seeds, every seed the same difference, or",
-        "the preset cannot run here) or diverged (a seed's run diverged: counted, a failed stability check);",
+        "the preset cannot run here), not comparable (a MaterialNet reference whose normal error is more",
+        f"than {REFERENCE_TOLERANCE:.0%} above the main model's: a claim about the trained method is not judged",
+        "against a half-trained one) or diverged (a seed's run diverged: counted, a failed stability check);",
         "`power`: the chance of a verdict if the true difference were the stated size (0.5 dB on a PSNR,",
         "else 5 % of the reference's mean) with the seed spread observed; the minimal detectable effect",
         "(power 0.8) bounds an inconclusive claim, which reads as no effect larger than it, not as none;",
