@@ -1,11 +1,12 @@
 """`python -m pipeline.bench.compare_runs`: two runs of the pipeline on the same test views, paired.
 
-Given the `edit` stage's cases.csv of a run before and after a change (`--cases OLD NEW`) and,
-optionally, the `train_lighting` stage's test_views.csv of both (`--views OLD NEW`), it pairs each case
-(view, case) or view (id) across the two runs and reports, per group, the mean before and after and the
-mean difference (after minus before) with its 95 % bootstrap interval, whole views resampled
-(`metrics.bootstrap.paired_bootstrap`): insertion PSNR per object material and over all objects, edit
-PSNR per edit, and the LightNet test metrics (re-render PSNR, light nMSE, log-L1). A difference whose
+Given the `edit` stage's cases.csv of a run before and after a change (`--cases OLD NEW`), the
+`train_lighting` stage's test_views.csv of both (`--views OLD NEW`) or the `train_material` stage's
+(`--material OLD NEW`), in any combination, it pairs each case (view, case) or view (id) across the two
+runs and reports, per group, the mean before and after and the mean difference (after minus before)
+with its 95 % bootstrap interval, whole views resampled (`metrics.bootstrap.paired_bootstrap`):
+insertion PSNR per object material and over all objects, edit PSNR per edit, the LightNet test metrics
+(re-render PSNR, light nMSE, log-L1), and MaterialNet's per-view map errors. A difference whose
 interval holds 0 is reported as none (a group from one view has no interval). Cases or views present in
 one run only are refused by name: the two runs must have scored the same views.
 
@@ -24,6 +25,7 @@ from pipeline.metrics.bootstrap import paired_bootstrap
 
 CASE_METRIC = "lightnet/psnr"
 VIEW_METRICS = ("render_psnr", "surf_light_nmse", "free_light_nmse", "surf_light_log_l1", "free_light_log_l1")
+MATERIAL_METRICS = ("albedo_mse", "normal_angle_deg", "roughness_mse", "metallic_mse", "depth_log_mse")
 
 
 def read_rows(path: Path, key) -> dict:
@@ -89,11 +91,12 @@ def compare_cases(old_path: Path, new_path: Path) -> dict:
     return {name: summarise(*map(list, zip(*rows, strict=True))) for name, rows in sorted(groups.items())}
 
 
-def compare_views(old_path: Path, new_path: Path, mode: str = "mixed") -> dict:
+def compare_views(old_path: Path, new_path: Path, mode: str = "mixed", metrics=VIEW_METRICS) -> dict:
+    """Per metric of `metrics`, the `<mode>/<metric>` column of two per-view CSVs paired by view id."""
     old, new = read_rows(old_path, lambda r: r["id"]), read_rows(new_path, lambda r: r["id"])
     keys = paired(old, new, old_path, new_path)
     out = {}
-    for metric in VIEW_METRICS:
+    for metric in metrics:
         column = f"{mode}/{metric}"
         if column not in old[keys[0]] or column not in new[keys[0]]:
             continue
@@ -107,18 +110,22 @@ def main(argv=None) -> None:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--cases", nargs=2, metavar=("OLD", "NEW"), help="the edit stage's cases.csv of both runs")
     p.add_argument("--views", nargs=2, metavar=("OLD", "NEW"), help="train_lighting's test_views.csv of both")
+    p.add_argument("--material", nargs=2, metavar=("OLD", "NEW"), help="train_material's test_views.csv of both")
     p.add_argument("--out", required=True, help="JSON to write")
     a = p.parse_args(argv)
-    if not a.cases and not a.views:
-        p.error("give --cases, --views or both")
+    if not a.cases and not a.views and not a.material:
+        p.error("give --cases, --views or --material (or several)")
     report = {}
     if a.cases:
         report["cases"] = {"files": a.cases, "metric": CASE_METRIC, "groups": compare_cases(*map(Path, a.cases))}
     if a.views:
         report["views"] = {"files": a.views, "metrics": compare_views(*map(Path, a.views))}
+    if a.material:
+        material = compare_views(*map(Path, a.material), mode="model", metrics=MATERIAL_METRICS)
+        report["material"] = {"files": a.material, "metrics": material}
     Path(a.out).parent.mkdir(parents=True, exist_ok=True)
     Path(a.out).write_text(json.dumps(report, indent=1) + "\n")
-    for part in ("cases", "views"):
+    for part in ("cases", "views", "material"):
         rows = report.get(part, {}).get("groups") or report.get(part, {}).get("metrics") or {}
         for name, r in rows.items():
             print(

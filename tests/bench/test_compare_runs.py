@@ -51,3 +51,25 @@ def test_runs_of_other_cases_and_bad_numbers_are_refused(tmp_path):
         compare_runs.compare_cases(old, bad)
     with pytest.raises(FileNotFoundError, match="missing.csv"):
         compare_runs.compare_cases(old, tmp_path / "missing.csv")
+
+
+def test_material_views_are_paired_by_view_on_each_map(tmp_path):
+    header = ["id", "model/normal_angle_deg", "model/albedo_mse", "mean_albedo/albedo_mse"]
+
+    def views(path, shift):
+        with open(path, "w", newline="") as f:
+            w = csv.writer(f)
+            w.writerow(header)
+            w.writerows([[f"scene_{v:04d}/000", 20 + v + shift + 0.1 * (v % 3), 0.01, 0.04] for v in range(10)])
+        return path
+
+    out = tmp_path / "m.json"
+    compare_runs.main(
+        ["--material", str(views(tmp_path / "a.csv", 0)), str(views(tmp_path / "b.csv", -1)), "--out", str(out)]
+    )
+    metrics = json.loads(out.read_text())["material"]["metrics"]
+    assert set(metrics) == {"normal_angle_deg", "albedo_mse"}  # the model's maps only, not the baselines'
+    assert (
+        metrics["normal_angle_deg"]["diff"] == pytest.approx(-1.0) and metrics["normal_angle_deg"]["verdict"] == "lower"
+    )
+    assert metrics["albedo_mse"]["verdict"] == "none"
