@@ -25,7 +25,6 @@ from pipeline.metrics.bootstrap import paired_bootstrap
 
 CASE_METRIC = "lightnet/psnr"
 VIEW_METRICS = ("render_psnr", "surf_light_nmse", "free_light_nmse", "surf_light_log_l1", "free_light_log_l1")
-MATERIAL_METRICS = ("albedo_mse", "normal_angle_deg", "roughness_mse", "metallic_mse", "depth_log_mse")
 
 
 def read_rows(path: Path, key) -> dict:
@@ -92,9 +91,12 @@ def compare_cases(old_path: Path, new_path: Path) -> dict:
 
 
 def compare_views(old_path: Path, new_path: Path, mode: str = "mixed", metrics=VIEW_METRICS) -> dict:
-    """Per metric of `metrics`, the `<mode>/<metric>` column of two per-view CSVs paired by view id."""
+    """Per metric of `metrics` (None: every `<mode>/` column), the `<mode>/<metric>` column of two per-view
+    CSVs paired by view id."""
     old, new = read_rows(old_path, lambda r: r["id"]), read_rows(new_path, lambda r: r["id"])
     keys = paired(old, new, old_path, new_path)
+    if metrics is None:
+        metrics = [c.removeprefix(f"{mode}/") for c in old[keys[0]] if c.startswith(f"{mode}/")]
     out = {}
     for metric in metrics:
         column = f"{mode}/{metric}"
@@ -121,7 +123,7 @@ def main(argv=None) -> None:
     if a.views:
         report["views"] = {"files": a.views, "metrics": compare_views(*map(Path, a.views))}
     if a.material:
-        material = compare_views(*map(Path, a.material), mode="model", metrics=MATERIAL_METRICS)
+        material = compare_views(*map(Path, a.material), mode="model", metrics=None)  # every map it scores
         report["material"] = {"files": a.material, "metrics": material}
     Path(a.out).parent.mkdir(parents=True, exist_ok=True)
     Path(a.out).write_text(json.dumps(report, indent=1) + "\n")

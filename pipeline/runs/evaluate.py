@@ -27,10 +27,10 @@ from omegaconf import DictConfig
 from pipeline.data.formats.photo import srgb8_to_linear
 from pipeline.data.standins import benchmark_roots
 from pipeline.metrics import normal as normal_metrics
-from pipeline.metrics.bootstrap import mean_bootstrap, paired_bootstrap
+from pipeline.metrics.bootstrap import mean_bootstrap
 from pipeline.models.material_net import load_material_export, predict_maps
 from pipeline.systems.evaluation import BENCHMARKS, BenchmarkEvaluation, NYUTest, test_loaders
-from pipeline.systems.out_of_distribution import interval_keys
+from pipeline.systems.out_of_distribution import paired_keys
 from pipeline.systems.trainer import stage_trainer
 from pipeline.tracking import publish, stage_run
 from pipeline.tracking.figures import ranked_cases
@@ -135,16 +135,13 @@ def paired_intervals(
     """`after` minus `before` per score column, paired by image (both score the same images in the same
     order, else nothing: the difference of two means over different images is no paired figure), over
     the images where both are finite: `<metric>` with `_lo`, `_hi` (95 % bootstrap) and `_n`
-    (`interval_keys`)."""
+    (`paired_keys`)."""
     ids = [k for k in before[0] if k in skip][:1]
     if len(before) != len(after) or any(a[k] != b[k] for a, b in zip(before, after, strict=True) for k in ids):
         return {}
     out = {}
     for k in (k for k in before[0] if k not in skip and k in after[0]):
-        diff = np.array([b[k] - a[k] for a, b in zip(before, after, strict=True)], np.float64)
-        diff = diff[np.isfinite(diff)]
-        if len(diff):
-            out.update(interval_keys(k, paired_bootstrap(diff, resamples, seed)))
+        out.update(paired_keys(k, [b[k] - a[k] for a, b in zip(before, after, strict=True)], resamples, seed))
     return out
 
 

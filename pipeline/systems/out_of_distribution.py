@@ -93,19 +93,21 @@ def lighting_summary(rows: list[dict], resamples: int, seed: int) -> dict[str, f
             out[k] = float(values[np.isfinite(values)].mean())
     for column in (k for k in rows[0] if k != "id" and not k.startswith("model/")):
         who, metric = column.split("/", 1)
-        if f"model/{metric}" not in rows[0]:
-            continue
-        diff = np.array([r[f"model/{metric}"] - r.get(column, np.nan) for r in rows], np.float64)
-        diff = diff[np.isfinite(diff)]
-        if not len(diff):
-            continue
-        out.update(interval_keys(f"minus_{who}/{metric}", paired_bootstrap(diff, resamples, seed)))
+        if f"model/{metric}" in rows[0]:
+            diff = [r[f"model/{metric}"] - r.get(column, np.nan) for r in rows]
+            out.update(paired_keys(f"minus_{who}/{metric}", diff, resamples, seed))
     return out
 
 
-def interval_keys(key: str, ci: dict[str, float]) -> dict[str, float]:
-    """A paired difference as published metrics: `<key>` (the mean), `<key>_n` (units) and, when there were
-    two or more units to resample, `<key>_lo`, `<key>_hi` (a metric file holds finite numbers only)."""
+def paired_keys(key: str, diff, resamples: int, seed: int) -> dict[str, float]:
+    """Paired differences (n,) as published metrics, over the finite ones (nothing when none is): `<key>`
+    (their mean), `<key>_n` (units) and, from two units on, `<key>_lo`, `<key>_hi` (95 % bootstrap; a
+    metric file holds finite numbers only)."""
+    d = np.asarray(diff, np.float64)
+    d = d[np.isfinite(d)]
+    if not len(d):
+        return {}
+    ci = paired_bootstrap(d, resamples, seed)
     out = {key: ci["diff"], f"{key}_n": ci["n"]}
     if np.isfinite(ci["lo"]):
         out.update({f"{key}_lo": ci["lo"], f"{key}_hi": ci["hi"]})

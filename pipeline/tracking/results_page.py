@@ -236,6 +236,11 @@ def published_interval(published: dict, key: str) -> str:
     return "n/a" if lo is None or hi is None else interval(lo, hi)
 
 
+def published_cell(published: dict, key: str, fmt: Callable = num, missing: str = "n/a") -> str:
+    """`<value> [lo, hi]` of a published figure `<key>` (`fmt` writes the value), or `missing`."""
+    return missing if key not in published else f"{fmt(published[key])} {published_interval(published, key)}"
+
+
 def section_edit(reports: Path, facts: dict | None = None) -> list[str]:
     path = reports / "edit/metrics.json"
     m = read_json(path)
@@ -366,17 +371,12 @@ def section_evaluate(reports: Path) -> list[str]:
         for metric in list(trained)[1:]:
             if metric not in tuned:
                 continue
-            cells = [
-                f"{num(m.get(f'{model}/{bench}/{metric}'))} {published_interval(m, f'{model}/{bench}/{metric}')}"
-                for model in MODELS
-            ]
-            diff = f"finetuned_minus_trained/{bench}/{metric}"
             rows.append(
                 [
                     f"{bench} {metric}",
                     str(len(trained[metric])),
-                    *cells,
-                    f"{signed(m[diff])} {published_interval(m, diff)}" if diff in m else "n/a (different images)",
+                    *(published_cell(m, f"{model}/{bench}/{metric}") for model in MODELS),
+                    published_cell(m, f"finetuned_minus_trained/{bench}/{metric}", signed, "n/a (different images)"),
                 ]
             )
     lines += md_table(["metric", "images", "trained", "fine-tuned", "fine-tuned - trained"], rows)
@@ -397,13 +397,6 @@ OOD_GATES = (
     ("depth_log_mse", "constant_depth"),
 )
 OOD_ENTRIES = (("synthetic", "test"), ("synthetic_ood", "out of distribution"))
-
-
-def ratio_cell(published: dict, model: str, entry: str, metric: str, baseline: str) -> str:
-    """mean(model) / mean(baseline) over the views where both are finite, with its interval, as `evaluate`
-    published them (`<model>/<entry>/gate/<baseline>/<metric>`)."""
-    key = f"{model}/{entry}/gate/{baseline}/{metric}"
-    return "n/a" if key not in published else f"{num(published[key])} {published_interval(published, key)}"
 
 
 def section_out_of_distribution(reports: Path) -> list[str]:
@@ -431,7 +424,7 @@ def section_out_of_distribution(reports: Path) -> list[str]:
     rows = [
         [
             f"{metric} / {baseline}",
-            *(ratio_cell(published, m, e, metric, baseline) for m in MODELS for e, _ in OOD_ENTRIES),
+            *(published_cell(published, f"{m}/{e}/gate/{baseline}/{metric}") for m in MODELS for e, _ in OOD_ENTRIES),
         ]
         for metric, baseline in OOD_GATES
     ]
@@ -453,10 +446,7 @@ def section_out_of_distribution(reports: Path) -> list[str]:
                 cells.append(num(model.mean()) if len(model) else "n/a")
                 base = v.get(f"scaled_constant/{key}")
                 cells.append(num(base[np.isfinite(base)].mean()) if base is not None else "n/a")
-                diff = f"lightnet/{e}/minus_scaled_constant/{key}"
-                cells.append(
-                    f"{signed(published[diff])} {published_interval(published, diff)}" if diff in published else "n/a"
-                )
+                cells.append(published_cell(published, f"lightnet/{e}/minus_scaled_constant/{key}", signed))
             rows.append([label, *cells])
         header = ["metric"] + [
             f"{who}, {label}" for _, label in OOD_ENTRIES for who in ("LightNet", "scaled constant", "difference")
