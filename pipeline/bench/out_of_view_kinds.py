@@ -14,6 +14,9 @@ the held-out test split as the stages score it:
   scored once beside the first kind.
 Every kind after the first is compared with the first, paired: insertion by case (views resampled whole)
 and re-render by view (`metrics.bootstrap.paired_bootstrap`). A difference whose interval holds 0 is none.
+With `--exports NAME=PATH ...` nothing is trained: each LightNet export (e.g. the `train_lighting` stage's
+own, or the stage run with another `out_of_view.kind`, each at the stage's full schedule) is scored and
+compared the same way, its kind read from the export.
 Writes reports/bench/out_of_view_kinds.json (or `--name`) and a PNG.
 """
 
@@ -90,22 +93,57 @@ def view_pairs(views: list[dict], reference: list[dict], resamples: int, seed: i
     return out
 
 
-def run(kinds, minutes: float, warmup: int, seed: int, data_dir: str, resamples: int, overrides=(), edit_overrides=()):
+def export_kind(path: str) -> str:
+    """The `out_of_view.kind` of a LightNet export (`models.export`; an export without one is `nerf`)."""
+    from pipeline.models.export import LIGHT_FORMAT, read_export
+
+    return str(read_export(path, LIGHT_FORMAT)["light_net"].get("out_of_view", {}).get("kind", "nerf"))
+
+
+def load_export(system, path: str) -> dict:
+    """Put the export's weights into `system` (built for its kind); the run's timing fields, unknown here."""
+    from pipeline.models.light_net import load_light_export
+
+    net, _ = load_light_export(path)
+    system.net.load_state_dict(net.state_dict())
+    return {"steps": None, "seconds": float("nan"), "median_step_seconds": float("nan"), "export": str(path)}
+
+
+def run(
+    kinds,
+    minutes: float,
+    warmup: int,
+    seed: int,
+    data_dir: str,
+    resamples: int,
+    overrides=(),
+    edit_overrides=(),
+    exports: dict[str, str] | None = None,
+):
+    """Train each of `kinds` for `minutes` (or, with `exports` {name: path}, load each export instead)
+    and score it held out; the first is every other's reference."""
     from pipeline.data.datamodules import InteriorVerseDataModule
     from pipeline.data.datasets import ShardDataset
 
     rooms = len(ShardDataset(data_dir, "train", lighting=True))
-    report = {"kinds": list(kinds), "minutes": minutes, "warmup": warmup, "seed": seed, "rooms": rooms}
+    if exports:
+        kinds = list(exports)
+    report = {"kinds": list(kinds), "minutes": None if exports else minutes, "warmup": warmup, "seed": seed}
+    report["rooms"], report["exports"] = rooms, dict(exports or {})
     report["overrides"], report["edit_overrides"] = list(overrides), list(edit_overrides)
     runs, records, views = [], {}, {}
     with tempfile.TemporaryDirectory() as scratch:
         for i, kind in enumerate(kinds):
-            o = [f"data_dir={data_dir}", f"model.light_net.out_of_view.kind={kind}", *overrides]
+            branch = export_kind(exports[kind]) if exports else kind
+            o = [f"data_dir={data_dir}", f"model.light_net.out_of_view.kind={branch}", *overrides]
             system, optimizer, cfg = training_system("train_lighting", o, seed)
             dm = InteriorVerseDataModule(cfg.data_dir, batch_size=int(cfg.batch_size), seed=seed, lighting=True)
             dm.setup("test")
-            loader = first_rooms_loader(cfg.data_dir, rooms, int(cfg.batch_size), seed)
-            timing = train_for(system, optimizer, loader, minutes, warmup, gradient_clip(cfg), kind)
+            if exports:
+                timing = load_export(system, exports[kind])
+            else:
+                loader = first_rooms_loader(cfg.data_dir, rooms, int(cfg.batch_size), seed)
+                timing = train_for(system, optimizer, loader, minutes, warmup, gradient_clip(cfg), kind)
             per_view: list[dict] = []
             rows = REFERENCE_ROWS if i == 0 else ("lightnet",)
             scores, recs = score(system, cfg, dm.test_dataloader(), rows, seed, Path(scratch), edit_overrides, per_view)
@@ -125,6 +163,22 @@ def run(kinds, minutes: float, warmup: int, seed: int, data_dir: str, resamples:
     report["runs"] = runs
     report["summary"] = summarise(report)
     return report
+
+
+def parse_exports(items: list[str]) -> dict[str, str]:
+    """{name: path} of `NAME=PATH` items; a malformed item, a repeated name or a missing file is refused
+    naming it."""
+    out = {}
+    for item in items:
+        name, sep, path = item.partition("=")
+        if not sep or not name or not path:
+            raise ValueError(f"--exports {item!r}: give NAME=PATH")
+        if name in out:
+            raise ValueError(f"--exports: {name!r} given twice")
+        if not Path(path).is_file():
+            raise FileNotFoundError(f"--exports {name}: {path} not found")
+        out[name] = path
+    return out
 
 
 def summarise(report: dict) -> dict:
@@ -163,7 +217,8 @@ def plot(report: dict, path) -> None:
         lo = [y[k] - r["insertion"].get(c, {}).get("psnr_lo", np.nan) for k, c in enumerate(CLASSES)]
         hi = [r["insertion"].get(c, {}).get("psnr_hi", np.nan) - y[k] for k, c in enumerate(CLASSES)]
         minutes, psnr = r["seconds"] / 60, r["test"]["render_psnr"]
-        label = f"{r['kind']} ({r['steps']} steps, {minutes:.0f} min; re-render {psnr:.2f} dB)"
+        trained = "the stage's training" if r["steps"] is None else f"{r['steps']} steps, {minutes:.0f} min"
+        label = f"{r['kind']} ({trained}; re-render {psnr:.2f} dB)"
         ax.bar(x + j * width, y, width, yerr=[lo, hi], capsize=3, label=label)
     first = runs[0]
     for row, style in (("scaled_constant", ":"), ("nearest_probe", "-.")):
@@ -182,9 +237,9 @@ def plot(report: dict, path) -> None:
     ax.set_ylabel("insertion PSNR (dB), held-out test cases")
     ax.set_ylim(bottom=min(10, ax.get_ylim()[0]))
     ax.legend(fontsize=7)
-    ax.set_title(
-        f"out-of-view branches at {report['minutes']:g} training minutes each (95 % intervals over views)", fontsize=9
-    )
+    minutes = report["minutes"]
+    budget = "as trained by the stage" if minutes is None else f"at {minutes:g} training minutes each"
+    ax.set_title(f"out-of-view branches {budget} (95 % intervals over views)", fontsize=9)
     fig.savefig(path, dpi=120)
 
 
@@ -193,10 +248,18 @@ def main(argv=None) -> None:
     p.add_argument("--kinds", nargs="+", default=["nerf", "roombox"])
     p.add_argument("--minutes", type=float, default=10.0, help="training wall-clock budget per kind")
     p.add_argument("--warmup", type=int, default=20, help="steps that time a step (inside the budget)")
+    p.add_argument(
+        "--exports",
+        nargs="+",
+        default=None,
+        metavar="NAME=PATH",
+        help="score these LightNet exports instead of training (the first is the reference)",
+    )
     add_held_out_options(p, "out_of_view_kinds")
     a = p.parse_args(argv)
     apply_threads(a.threads)
-    report = run(a.kinds, a.minutes, a.warmup, a.seed, a.data_dir, a.resamples, a.override, a.edit_override)
+    exports = parse_exports(a.exports) if a.exports else None
+    report = run(a.kinds, a.minutes, a.warmup, a.seed, a.data_dir, a.resamples, a.override, a.edit_override, exports)
     print(publish(a.name, report, plot))
 
 

@@ -11,10 +11,13 @@ a warm-up pass over the batches that also fills the cache and compiles), its rat
 the profiler's top operations of the first and last settings.
 
 Same results at equal steps: the first and last settings, trained the same `--steps` steps from the same
-initialisation, are scored on the same test views with the same evaluation draws; the JSON holds each
-metric's paired per-view difference (last minus first) with its bootstrap interval. The two draw their
+initialisation, are scored on the same test views with the same evaluation draws. The two draw their
 random numbers in different orders (the recomputed chunk drew again), so they are equal in
-distribution, not bit for bit. Writes reports/bench/train_step.json and a PNG.
+distribution, not bit for bit: after a few dozen steps they are two training trajectories, as two seeds
+are, and one pair's per-view differences do not hold that trajectory noise. So the pair trains at
+`--pair-seeds` seeds (initialisation and batch order each), and each metric's difference (last minus
+first, the mean over the views per seed) gets a t interval over the seeds (`metrics.verdicts.seed_effect`),
+each seed's difference beside it. Writes reports/bench/train_step.json and a PNG.
 """
 
 from __future__ import annotations
@@ -35,7 +38,7 @@ from pipeline.bench.common import (
     publish,
     training_system,
 )
-from pipeline.metrics.bootstrap import paired_bootstrap
+from pipeline.metrics.verdicts import seed_effect
 
 SETTINGS = (  # name, (cache MaterialNet's maps, recompute a single chunk, compiled SSRT)
     ("as before", (False, True, False)),
@@ -132,8 +135,8 @@ def top_operations(system, optimizer, cfg, batches, rows: int = 15) -> list[dict
 
 
 @torch.no_grad()
-def paired_scores(systems, views) -> dict:
-    """Per-view scores of each system on `views` (batches), then last minus first per metric."""
+def view_scores(systems, views) -> list[dict[str, list[float]]]:
+    """Per system, {metric: its per-view scores on `views` (batches), in view order} for `SCORES`."""
     per = []
     for system in systems:
         system.eval()
@@ -142,17 +145,32 @@ def paired_scores(systems, views) -> dict:
             vs = [{"id": v} for v in batch["id"]]
             system.evaluate_batch(batch, vs)
             rows.extend(vs)
-        per.append(rows)
+        per.append({m: [r[m] for r in rows if m in r] for m in SCORES})
         system.train()
+    return per
+
+
+def paired_over_seeds(pairs: list[tuple[dict, dict]]) -> dict:
+    """Per metric: the first and last settings' means over seeds and views, and last minus first with its t
+    interval over the seeds (`seed_effect`: each seed's per-view differences), each seed's mean difference.
+    pairs: per seed, (first's, last's) `view_scores`. A metric some view lacks in either is left out."""
     out = {}
     for metric in SCORES:
-        a = [r[metric] for r in per[0] if metric in r]
-        b = [r[metric] for r in per[-1] if metric in r]
-        if a and len(a) == len(b):
+        diffs, firsts, lasts = [], [], []
+        for first, last in pairs:
+            a, b = first[metric], last[metric]
+            if not a or len(a) != len(b):
+                break
+            diffs.append([y - x for x, y in zip(a, b, strict=True)])
+            firsts.append(statistics.fmean(a))
+            lasts.append(statistics.fmean(b))
+        else:
+            effect = seed_effect(diffs)
             out[metric] = {
-                "first": statistics.fmean(a),
-                "last": statistics.fmean(b),
-                **paired_bootstrap([y - x for x, y in zip(a, b, strict=True)]),
+                "first": statistics.fmean(firsts),
+                "last": statistics.fmean(lasts),
+                **effect,
+                "per_seed": [statistics.fmean(d) for d in diffs],
             }
     return out
 
@@ -165,6 +183,7 @@ def run(
     seed: int = 0,
     data_dir: str = "outputs/preprocess",
     overrides=(),
+    pair_seeds: int = 3,
 ) -> dict:
     from pipeline.data.datamodules import InteriorVerseDataModule
 
@@ -193,26 +212,31 @@ def run(
         for name, t in times.items()
     ]
     profiles = {built[i][0]: top_operations(*built[i][1:4], train[:3]) for i in (0, -1)}
-    # equal results at equal steps: fresh copies of the first and last settings, same init, same batches
-    pair = [build(SETTINGS[i][1], seed, list(overrides)) for i in (0, -1)]
-    loader = dm.train_dataloader()
-    trained = 0
-    bar = tqdm(total=steps, desc="paired training")
-    while trained < steps:
-        for batch in loader:
-            for system, opt, cfg in pair:
-                step(system, opt, batch, cfg)
-            trained += 1
-            bar.update(1)
-            if trained >= steps:
-                break
-    bar.close()
     views, n = [], 0
     for batch in dm.plain_loader("test"):
         views.append(batch)
         n += len(batch["im"])
         if n >= test_views:
             break
+    # equal results at equal steps: per seed, fresh copies of the first and last settings, same init, same
+    # batches; the seeds are the replication units (two float paths diverge like two trajectories)
+    pairs = []
+    for s in range(seed, seed + pair_seeds):
+        pair = [build(SETTINGS[i][1], s, list(overrides)) for i in (0, -1)]
+        loader = InteriorVerseDataModule(data_dir, batch_size=4, seed=s, lighting=True)
+        loader.setup("fit")
+        trained = 0
+        bar = tqdm(total=steps, desc=f"paired training, seed {s}")
+        while trained < steps:
+            for batch in loader.train_dataloader():
+                for system, opt, cfg in pair:
+                    step(system, opt, batch, cfg)
+                trained += 1
+                bar.update(1)
+                if trained >= steps:
+                    break
+        bar.close()
+        pairs.append(tuple(view_scores([p[0] for p in pair], views)))
     return {
         "settings": rows,
         "profile_top_operations": profiles,
@@ -221,7 +245,8 @@ def run(
             "last": SETTINGS[-1][0],
             "steps": steps,
             "test_views": n,
-            "scores": paired_scores([p[0] for p in pair], views),
+            "seeds": pair_seeds,
+            "scores": paired_over_seeds(pairs),
         },
         "batches": batches,
         "rounds": rounds,
@@ -254,7 +279,7 @@ def plot(report: dict, path) -> None:
         ax.set_title(
             f"same results: after {pair['steps']} steps, {pair['last']} minus {pair['first']} on "
             f"{pair['test_views']} test views,\nre-render {psnr['diff']:+.2f} dB "
-            f"[{psnr['lo']:+.2f}, {psnr['hi']:+.2f}] (95 % paired bootstrap)",
+            f"[{psnr['lo']:+.2f}, {psnr['hi']:+.2f}] (95 % t interval over {pair.get('seeds', 1)} training seeds)",
             fontsize=8,
         )
     fig.tight_layout()
@@ -267,6 +292,7 @@ def main(argv=None) -> None:
     p.add_argument("--rounds", type=int, default=3, help="timed passes over those batches")
     p.add_argument("--steps", type=int, default=60, help="steps of the paired same-results check")
     p.add_argument("--test-views", type=int, default=16)
+    p.add_argument("--pair-seeds", type=int, default=3, help="training seeds of the same-results check")
     p.add_argument("--data-dir", default="outputs/preprocess")
     p.add_argument("--override", action="append", default=[], help="a train_lighting override (repeatable)")
     add_threads_option(p)
@@ -275,7 +301,15 @@ def main(argv=None) -> None:
     print(
         publish(
             "train_step",
-            run(a.batches, a.rounds, a.steps, a.test_views, data_dir=a.data_dir, overrides=a.override),
+            run(
+                a.batches,
+                a.rounds,
+                a.steps,
+                a.test_views,
+                data_dir=a.data_dir,
+                overrides=a.override,
+                pair_seeds=a.pair_seeds,
+            ),
             plot,
         )
     )

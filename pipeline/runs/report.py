@@ -617,17 +617,27 @@ def main_material(reports: Path) -> dict | None:
     return read_json(reports / "train_material" / "metrics.json")
 
 
+def tabulate(runs: dict, reports: Path) -> dict:
+    """The ablation tables' rows and their numbers, and the claims' verdicts (the main MaterialNet's
+    metrics under `reports` decide which MaterialNet claims are comparable): {light, mat, claims: (rows,
+    numbers), verdicts}. ablations.md and docs/results.md both print these."""
+    verdicts = claim_verdicts(runs, not_comparable=reference_comparability(runs, main_material(reports)))
+    return {
+        "light": table({**runs, **threshold_runs(runs)}, "train_lighting", LIGHT_COLUMNS),
+        "mat": table(runs, "train_material", MATERIAL_COLUMNS),
+        "claims": claims_table(runs, verdicts),
+        "verdicts": verdicts,
+    }
+
+
 def results_markdown(reports: Path, ablate_dir: Path, profile: str, claims: dict | None = None) -> str:
     """docs/results.md from the reports and the claims (`read_runs`) alone (what the stage writes; the test
     renders it the same way)."""
     runs = read_runs(ablate_dir, claims)
-    light_rows, _ = table({**runs, **threshold_runs(runs)}, "train_lighting", LIGHT_COLUMNS)
-    mat_rows, _ = table(runs, "train_material", MATERIAL_COLUMNS)
-    verdicts = claim_verdicts(runs, not_comparable=reference_comparability(runs, main_material(reports)))
-    claim_rows, _ = claims_table(runs, verdicts)
-    tables = ablation_tables(light_rows, mat_rows, claim_rows, runs, "../reports/ablate")
+    t = tabulate(runs, reports)
+    tables = ablation_tables(t["light"][0], t["mat"][0], t["claims"][0], runs, "../reports/ablate")
     counts: dict[str, int] = {}
-    for v in verdicts.values():
+    for v in t["verdicts"].values():
         if v["role"] == "primary":  # a secondary metric has no verdict to count
             counts[v["verdict"]] = counts.get(v["verdict"], 0) + 1
     return render_results(reports, tables, profile, counts)
@@ -650,10 +660,9 @@ def run(cfg: DictConfig) -> dict[str, float]:
     claims = OmegaConf.to_container(cfg.claims, resolve=True)
     runs = read_runs(Path(cfg.ablate_dir), claims)
     out.mkdir(parents=True, exist_ok=True)
-    light_rows, light_numbers = table({**runs, **threshold_runs(runs)}, "train_lighting", LIGHT_COLUMNS)
-    mat_rows, mat_numbers = table(runs, "train_material", MATERIAL_COLUMNS)
-    verdicts = claim_verdicts(runs, not_comparable=reference_comparability(runs, main_material(reports)))
-    claim_rows, claim_numbers = claims_table(runs, verdicts)
+    t = tabulate(runs, reports)
+    (light_rows, light_numbers), (mat_rows, mat_numbers) = t["light"], t["mat"]
+    claim_rows, claim_numbers = t["claims"]
     doc = [
         f"# Ablations ({cfg.profile_name})",
         "",

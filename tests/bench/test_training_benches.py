@@ -98,6 +98,7 @@ def test_train_step_bench_runs_small(micro_shards, micro_exports, tmp_path, monk
         test_views=2,
         data_dir=str(micro_shards),
         overrides=[f"material_path={micro_exports / 'material.pt'}", "profile=micro"],
+        pair_seeds=2,
     )
     rows = report["settings"]
     assert [r["setting"] for r in rows] == [name for name, _ in train_step.SETTINGS[:3]]
@@ -105,8 +106,23 @@ def test_train_step_bench_runs_small(micro_shards, micro_exports, tmp_path, monk
     assert set(report["profile_top_operations"]) == {rows[0]["setting"], rows[-1]["setting"]}
     scores = report["paired"]["scores"]
     assert "render_psnr" in scores and all(math.isfinite(v["diff"]) for v in scores.values())
+    # the interval is over the training seeds: their per-seed differences are its data
+    assert all(v["seeds"] == 2 and len(v["per_seed"]) == 2 for v in scores.values())
+    assert all(v["diff"] == pytest.approx(sum(v["per_seed"]) / 2) for v in scores.values())
     train_step.plot(report, tmp_path / "t.png")
     assert (tmp_path / "t.png").stat().st_size > 5_000
+
+
+def test_train_step_pairs_over_seeds_not_views():
+    """Two seeds whose per-view differences are tight around opposite means: the interval over seeds
+    holds 0 (the trajectory noise is in it), where a pooled per-view interval would exclude it."""
+    first = {m: [1.0] * 8 for m in train_step.SCORES}
+    ups = {m: [1.5 + 0.01 * i for i in range(8)] for m in train_step.SCORES}
+    downs = {m: [0.6 + 0.01 * i for i in range(8)] for m in train_step.SCORES}
+    out = train_step.paired_over_seeds([(first, ups), (first, downs)])
+    psnr = out["render_psnr"]
+    assert psnr["seeds"] == 2 and psnr["per_seed"] == pytest.approx([0.535, -0.365])
+    assert psnr["lo"] < 0 < psnr["hi"] and psnr["diff"] == pytest.approx(0.085)
 
 
 def test_overfit_bench_runs_materialnet_small(micro_shards, tmp_path):
@@ -208,6 +224,40 @@ def test_out_of_view_kinds_bench_runs_small(micro_root, micro_shards, micro_expo
     assert [r["kind"] for r in report["summary"]["kinds"]] == ["nerf", "roombox"]
     out_of_view_kinds.plot(report, tmp_path / "k.png")
     assert (tmp_path / "k.png").stat().st_size > 10_000
+
+
+def test_out_of_view_kinds_scores_exports_of_either_kind_without_training(micro_exports, tmp_path):
+    """`--exports NAME=PATH`: each export's kind is read from the export, its weights (not a fresh
+    initialisation) are what gets scored, and malformed, repeated or missing exports are refused by name."""
+    import torch
+    from omegaconf import OmegaConf
+
+    from pipeline.bench import out_of_view_kinds
+    from pipeline.bench.common import training_system
+    from pipeline.models.export import save_light_export
+    from pipeline.models.light_net import LightNet
+
+    overrides = ["profile=micro", f"material_path={micro_exports / 'material.pt'}"]
+    cfg = training_system("train_lighting", [*overrides, "model.light_net.out_of_view.kind=roombox"], 1)[2]
+    options = OmegaConf.to_container(cfg.model.light_net, resolve=True)
+    torch.manual_seed(1)
+    save_light_export(tmp_path / "box.pt", options, LightNet(**options))
+    assert out_of_view_kinds.export_kind(str(tmp_path / "box.pt")) == "roombox"
+    assert out_of_view_kinds.export_kind(str(micro_exports / "light.pt")) == "nerf"
+    system = training_system("train_lighting", [*overrides, "model.light_net.out_of_view.kind=roombox"], 0)[0]
+    timing = out_of_view_kinds.load_export(system, str(tmp_path / "box.pt"))
+    saved = torch.load(tmp_path / "box.pt", weights_only=False)["state_dict"]
+    assert all(torch.equal(v, saved[k]) for k, v in system.net.state_dict().items())
+    assert timing["steps"] is None and timing["export"] == str(tmp_path / "box.pt")
+    good = {"nerf": str(micro_exports / "light.pt"), "box": str(tmp_path / "box.pt")}
+    assert out_of_view_kinds.parse_exports([f"{k}={v}" for k, v in good.items()]) == good
+    for bad, match in (
+        (["nerf"], "give NAME=PATH"),
+        (["a=x.pt"], "--exports a: x.pt not found"),
+        ([f"a={good['nerf']}", f"a={good['box']}"], "'a' given twice"),
+    ):
+        with pytest.raises((ValueError, FileNotFoundError), match=match):
+            out_of_view_kinds.parse_exports(bad)
 
 
 def test_head_rates_move_each_heads_last_weight_to_a_rate_over_its_fan_in(micro_exports):
