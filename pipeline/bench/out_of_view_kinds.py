@@ -101,11 +101,14 @@ def export_kind(path: str) -> str:
 
 
 def load_export(system, path: str) -> dict:
-    """Put the export's weights into `system` (built for its kind); the run's timing fields, unknown here."""
+    """Make the export's LightNet `system`'s: its weights and its whole configuration (volume samples and
+    bounds are options, not weights), which `score` re-exports from `system.hparams`. Returns the run's
+    timing fields, unknown here."""
     from pipeline.models.light_net import load_light_export
 
-    net, _ = load_light_export(path)
-    system.net.load_state_dict(net.state_dict())
+    net, blob = load_light_export(path)
+    system.net = net.train(system.training)
+    system.hparams["light_net"] = dict(blob["light_net"])
     return {"steps": None, "seconds": float("nan"), "median_step_seconds": float("nan"), "export": str(path)}
 
 

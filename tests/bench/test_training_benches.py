@@ -240,6 +240,7 @@ def test_out_of_view_kinds_scores_exports_of_either_kind_without_training(micro_
     overrides = ["profile=micro", f"material_path={micro_exports / 'material.pt'}"]
     cfg = training_system("train_lighting", [*overrides, "model.light_net.out_of_view.kind=roombox"], 1)[2]
     options = OmegaConf.to_container(cfg.model.light_net, resolve=True)
+    options["out_of_view"]["roombox"]["texture_size"] = 8  # an option the system's own config does not have
     torch.manual_seed(1)
     save_light_export(tmp_path / "box.pt", options, LightNet(**options))
     assert out_of_view_kinds.export_kind(str(tmp_path / "box.pt")) == "roombox"
@@ -249,6 +250,8 @@ def test_out_of_view_kinds_scores_exports_of_either_kind_without_training(micro_
     saved = torch.load(tmp_path / "box.pt", weights_only=False)["state_dict"]
     assert all(torch.equal(v, saved[k]) for k, v in system.net.state_dict().items())
     assert timing["steps"] is None and timing["export"] == str(tmp_path / "box.pt")
+    assert system.net.out_of_view.texture_size == 8  # the export's configuration, not the composed one
+    assert system.hparams["light_net"]["out_of_view"]["roombox"]["texture_size"] == 8
     good = {"nerf": str(micro_exports / "light.pt"), "box": str(tmp_path / "box.pt")}
     assert out_of_view_kinds.parse_exports([f"{k}={v}" for k, v in good.items()]) == good
     for bad, match in (
