@@ -187,6 +187,8 @@ def run(
 ) -> dict:
     from pipeline.data.datamodules import InteriorVerseDataModule
 
+    if pair_seeds < 1:
+        raise ValueError(f"--pair-seeds {pair_seeds}: the same-results check needs at least one seed")
     dm = InteriorVerseDataModule(data_dir, batch_size=4, seed=seed, lighting=True)
     dm.setup("fit")
     dm.setup("test")
@@ -292,7 +294,8 @@ def main(argv=None) -> None:
     p.add_argument("--rounds", type=int, default=3, help="timed passes over those batches")
     p.add_argument("--steps", type=int, default=60, help="steps of the paired same-results check")
     p.add_argument("--test-views", type=int, default=16)
-    p.add_argument("--pair-seeds", type=int, default=3, help="training seeds of the same-results check")
+    p.add_argument("--pair-seeds", type=int, default=3, help="training seeds of the same-results check (>= 1)")
+    p.add_argument("--name", default="train_step", help="the JSON/PNG name under reports/bench")
     p.add_argument("--data-dir", default="outputs/preprocess")
     p.add_argument("--override", action="append", default=[], help="a train_lighting override (repeatable)")
     add_threads_option(p)
@@ -300,7 +303,7 @@ def main(argv=None) -> None:
     apply_threads(a.threads)
     print(
         publish(
-            "train_step",
+            a.name,
             run(
                 a.batches,
                 a.rounds,
