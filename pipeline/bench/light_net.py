@@ -1,7 +1,8 @@
 """`python -m pipeline.bench.light_net`: LightNet speed per branch and mode, and what the out-of-view
 query threshold saves.
 
-1. Queries per second of the local branch, the out-of-view branch and each mode (SSRT included) on the
+1. Queries per second of the local branch, the out-of-view branch and each mode (SSRT included) of the
+   profile's LightNet (`--profile`, default tiny: its branches, volume samples and bounds) on the
    analytic box room with random G-buffers, and the full-frame re-render time (MC layer, 16 spp, every
    valid pixel) at 160x120 and 320x240 per setting (`RERENDER_SETTINGS`: unchunked branches, the default,
    a compiled SSRT kernel, out-of-view thresholds), side by side on the same scene and samples.
@@ -30,18 +31,18 @@ from pipeline.models.light_net.hyper import HyperMLP
 from pipeline.models.render_layer import MCRenderLayer
 from pipeline.ops.encodings import fourier_dim
 
-SMALL = {
-    "local": {"backbone": "small", "levels": 3, "frequencies": 4, "hidden": 64, "layers": 3},
-    "out_of_view": {
-        "backbone": "small",
-        "feature_dim": 64,
-        "nerf_hidden": 32,
-        "nerf_layers": 2,
-        "frequencies": 6,
-        "dir_frequencies": 4,
-        "samples": 16,
-    },
-}
+SETTING_KEYS = ("mode", "ssrt_compiled", "out_threshold")  # what each timed setting chooses itself
+
+
+def profile_sizes(profile: str = "tiny") -> dict:
+    """The profile's LightNet options (`train_lighting`'s `model.light_net`: branches, volume samples and
+    bounds) without the keys each timed setting sets (`SETTING_KEYS`)."""
+    from omegaconf import OmegaConf
+
+    from pipeline.bench.common import compose
+
+    options = OmegaConf.to_container(compose("train_lighting", [f"profile={profile}"]).model.light_net, resolve=True)
+    return {k: v for k, v in options.items() if k not in SETTING_KEYS}
 
 
 def _scene(H: int, W: int, fov: float = 85.0, rays_per_pixel: int = 1):
@@ -59,17 +60,18 @@ def _scene(H: int, W: int, fov: float = 85.0, rays_per_pixel: int = 1):
 
 
 @torch.no_grad()
-def speed(resolutions, repeats: int) -> list[dict]:
-    return [_mode_row(mode, H, W, repeats) for H, W in tqdm(resolutions, desc="light_net speed") for mode in MODES]
+def speed(resolutions, repeats: int, sizes: dict) -> list[dict]:
+    rows = tqdm(resolutions, desc="light_net speed")
+    return [_mode_row(mode, H, W, repeats, sizes) for H, W in rows for mode in MODES]
 
 
-def _mode_row(mode: str, H: int, W: int, repeats: int) -> dict:
+def _mode_row(mode: str, H: int, W: int, repeats: int, sizes: dict) -> dict:
     from pipeline.models.light_net import _gbuffer_at, trace_views
 
     gb, im, fov, o, wi = _scene(H, W)
     bidx = torch.zeros(len(o), dtype=torch.long)
     torch.manual_seed(0)
-    net = LightNet(mode=mode, **SMALL).eval()
+    net = LightNet(mode=mode, **sizes).eval()
     ctx = net.encode(im, gb["depth"], fov, normal=gb["normal"])
     sec = median_seconds(lambda: net(ctx, gb, fov, o, wi, bidx), repeats)
     row = {"height": H, "width": W, "mode": mode, "rays": len(o), "queries_per_second": len(o) / sec}
@@ -93,7 +95,8 @@ def _mode_row(mode: str, H: int, W: int, repeats: int) -> dict:
 
 
 # Full-frame re-render settings, timed side by side: `unchunked` runs each branch over all rays at once
-# (as before the branches were chunked), `default` is what the stages run.
+# (as before the branches were chunked), `default` chunked as the stages run them (eager SSRT, every ray
+# queried out of view, as the paper); `compiled_ssrt+threshold_0.9` is what `tiny` runs.
 RERENDER_SETTINGS = (
     {"name": "unchunked", "chunked": False},
     {"name": "default"},
@@ -101,11 +104,12 @@ RERENDER_SETTINGS = (
     {"name": "threshold_0.5", "out_threshold": 0.5},
     {"name": "threshold_0.9", "out_threshold": 0.9},
     {"name": "compiled_ssrt+threshold_0.5", "ssrt_compiled": True, "out_threshold": 0.5},
+    {"name": "compiled_ssrt+threshold_0.9", "ssrt_compiled": True, "out_threshold": 0.9},
 )
 
 
 @torch.no_grad()
-def rerender(H: int, W: int, repeats: int, spp: int = 16) -> list[dict]:
+def rerender(H: int, W: int, repeats: int, sizes: dict, spp: int = 16) -> list[dict]:
     """Seconds of the full-frame re-render (every valid pixel, `spp` importance samples through the MC
     layer, LightNet `mixed` as the incident radiance) per setting, on the same scene, weights and sample
     directions. The change each setting makes to the image is its relMSE against `default` (the
@@ -123,7 +127,7 @@ def rerender(H: int, W: int, repeats: int, spp: int = 16) -> list[dict]:
             mode="mixed",
             ssrt_compiled=setting.get("ssrt_compiled", False),
             out_threshold=setting.get("out_threshold", 0.0),
-            **SMALL,
+            **sizes,
         ).eval()
         ctx = net.encode(im, gb["depth"], fov, normal=gb["normal"])
         counting = {"out": 0, "rays": 0}
@@ -177,13 +181,14 @@ def _gathered_apply(params, x, scene):
     return x
 
 
-def hyper_apply(points: int = 65536, scenes: int = 4, repeats: int = 3) -> dict:
-    """Forward + backward seconds of the generated NeRF MLP (SMALL sizes) on `points` samples of
-    `scenes` scenes: grouped (HyperMLP.run_generated) vs per-point weight gather, and their ratio."""
-    o = SMALL["out_of_view"]
+def hyper_apply(out_of_view: dict, points: int = 65536, scenes: int = 4, repeats: int = 3) -> dict:
+    """Forward + backward seconds of the generated NeRF MLP (the sizes of `out_of_view`, a LightNet's
+    `out_of_view` options) on `points` samples of `scenes` scenes: grouped (HyperMLP.run_generated) vs
+    per-point weight gather, and their ratio."""
+    o = out_of_view
     sizes = [fourier_dim(3, o["frequencies"])] + [o["nerf_hidden"]] * o["nerf_layers"] + [4]
     torch.manual_seed(0)
-    hyper = HyperMLP(o["feature_dim"], sizes)
+    hyper = HyperMLP(o["feature_dim"], sizes, **o.get("hyper", {}))
     feature = torch.randn(scenes, o["feature_dim"])
     x = torch.randn(points, sizes[0])
     scene = torch.randint(0, scenes, (points,))
@@ -269,10 +274,13 @@ def run(
     data_dir="outputs/preprocess",
     hyper_points: int = 65536,
     material_path="outputs/train_material/model.pt",
+    profile: str = "tiny",
 ) -> dict:
-    report = {"threads": torch.get_num_threads(), "sizes": SMALL, "speed": speed(resolutions, repeats)}
-    report["rerender"] = [row for H, W in resolutions for row in rerender(H, W, repeats)]
-    report["hyper_apply"] = hyper_apply(hyper_points, repeats=repeats)
+    sizes = profile_sizes(profile)
+    report = {"threads": torch.get_num_threads(), "profile": profile, "sizes": sizes}
+    report["speed"] = speed(resolutions, repeats, sizes)
+    report["rerender"] = [row for H, W in resolutions for row in rerender(H, W, repeats, sizes)]
+    report["hyper_apply"] = hyper_apply(sizes["out_of_view"], hyper_points, repeats=repeats)
     missing = [str(p) for p in (model_path, material_path) if not Path(p).is_file()]
     if not missing:
         report["thresholds"] = thresholds(Path(model_path), data_dir, Path(material_path))
@@ -337,8 +345,11 @@ def main(argv=None) -> None:
     p.add_argument("--model", default="outputs/train_lighting/model.pt")
     p.add_argument("--data-dir", default="outputs/preprocess")
     p.add_argument("--material", default="outputs/train_material/model.pt", help="MaterialNet export (G-buffers)")
+    p.add_argument("--profile", default="tiny", help="whose LightNet options are timed")
     a = p.parse_args(argv)
-    report = run(repeats=a.repeats, model_path=a.model, data_dir=a.data_dir, material_path=a.material)
+    report = run(
+        repeats=a.repeats, model_path=a.model, data_dir=a.data_dir, material_path=a.material, profile=a.profile
+    )
     print(publish("light_net", report, plot))
 
 

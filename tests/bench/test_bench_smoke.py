@@ -153,6 +153,9 @@ def test_light_net_bench_runs_small(tmp_path):
     assert {r["mode"] for r in report["speed"]} == {"mixed", "ssrt_only", "out_of_view_only"}
     assert len(report["speed"]) == 3 and {(r["height"], r["width"]) for r in report["speed"]} == {(24, 32)}
     assert report["thresholds"] == [] and "not found" in report["thresholds_note"]
+    # it times the profile's LightNet, volume options included, not a copy of them
+    tiny = light_net.profile_sizes("tiny")["out_of_view"]
+    assert report["sizes"]["out_of_view"] == tiny and {"bounds", "samples"} <= set(tiny)
 
 
 @pytest.mark.slow
