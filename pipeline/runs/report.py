@@ -634,7 +634,11 @@ def results_markdown(reports: Path, ablate_dir: Path, profile: str, claims: dict
     """docs/results.md from the reports and the claims (`read_runs`) alone (what the stage writes; the test
     renders it the same way)."""
     runs = read_runs(ablate_dir, claims)
-    t = tabulate(runs, reports)
+    return results_from(reports, runs, tabulate(runs, reports), profile)
+
+
+def results_from(reports: Path, runs: dict, t: dict, profile: str) -> str:
+    """docs/results.md from the reports, the ablation runs (`read_runs`) and their tables (`tabulate`)."""
     tables = ablation_tables(t["light"][0], t["mat"][0], t["claims"][0], runs, "../reports/ablate")
     counts: dict[str, int] = {}
     for v in t["verdicts"].values():
@@ -697,7 +701,7 @@ def run(cfg: DictConfig) -> dict[str, float]:
     (out / "ablations.md").write_text("\n".join(doc) + "\n")
     results_doc = Path(cfg.results_doc)
     results_doc.parent.mkdir(parents=True, exist_ok=True)
-    results_doc.write_text(results_markdown(reports, Path(cfg.ablate_dir), cfg.profile_name, claims))
+    results_doc.write_text(results_from(reports, runs, t, cfg.profile_name))  # the runs and tables above
     points = pareto_points(runs)
     figure = pareto_figure(
         points,
