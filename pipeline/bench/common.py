@@ -105,13 +105,15 @@ def started_commit() -> tuple[str | None, bool | None]:
 
 
 def git_commit() -> tuple[str | None, bool | None]:
-    """(HEAD's SHA, whether tracked files differ from it), or (None, None) outside a git checkout."""
+    """(HEAD's SHA, whether tracked files differ from it). Outside a git checkout (a copy of the tree
+    without its .git, as a device machine gets one): the commit it was copied from as
+    `$INVRENDER_SOURCE_COMMIT` names it, dirty unknown; (None, None) without it."""
     root = project_root()
     try:
         sha = subprocess.run(["git", "rev-parse", "HEAD"], cwd=root, capture_output=True, text=True, check=True)
         dirty = subprocess.run(["git", "diff", "--quiet", "HEAD", "--"], cwd=root, capture_output=True)
     except (OSError, subprocess.CalledProcessError):
-        return None, None
+        return os.environ.get("INVRENDER_SOURCE_COMMIT") or None, None
     return sha.stdout.strip(), dirty.returncode != 0
 
 

@@ -52,3 +52,13 @@ def test_provenance_names_the_commit_the_process_started_on(monkeypatch):
     before = common.provenance()["commit"]
     monkeypatch.setattr(common, "git_commit", lambda: ("f" * 40, False))
     assert common.provenance()["commit"] == before
+
+
+def test_a_copy_without_git_names_the_commit_it_was_copied_from(monkeypatch, tmp_path):
+    # a device machine gets the tree without .git: the commit comes from the environment, dirty unknown
+    monkeypatch.setattr(common, "project_root", lambda: tmp_path)
+    monkeypatch.setenv("GIT_CEILING_DIRECTORIES", str(tmp_path.parent))
+    monkeypatch.delenv("INVRENDER_SOURCE_COMMIT", raising=False)
+    assert common.git_commit() == (None, None)
+    monkeypatch.setenv("INVRENDER_SOURCE_COMMIT", "c" * 40)
+    assert common.git_commit() == ("c" * 40, None)
