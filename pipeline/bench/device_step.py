@@ -323,13 +323,19 @@ def main(argv=None) -> None:
             for stage in a.stages:
                 print(f"{profile} {stage}", flush=True)
                 cases.append(run_case(profile, stage, a, material))
-    report = {"device": a.device, "data_dir": a.data_dir, "cases": cases, "settings": vars(a)}
-    print(publish(a.name, report, plot, a.device))
-    for c in cases:  # the summary the reader sees last: each part's outcome, the times
-        status = {k: v["error"] if isinstance(v, dict) and "error" in v else "ok" for k, v in c.items() if k in PARTS}
-        t = c.get("timing") if isinstance(c.get("timing"), dict) else {}
-        times = {k: round(v, 4) for k, v in t.items() if isinstance(v, float)}
-        print(c["profile"], c["stage"], status, times)
+                # written after every case: a run stopped at its time limit keeps what it measured
+                report = {"device": a.device, "data_dir": a.data_dir, "cases": cases, "settings": vars(a)}
+                path = publish(a.name, report, plot, a.device)
+                summarise(cases[-1])
+    print(path)
+
+
+def summarise(c: dict) -> None:
+    """One line per case: each part's outcome and the times."""
+    status = {k: v["error"] if isinstance(v, dict) and "error" in v else "ok" for k, v in c.items() if k in PARTS}
+    t = c.get("timing") if isinstance(c.get("timing"), dict) else {}
+    times = {k: round(v, 4) for k, v in t.items() if isinstance(v, float)}
+    print(c["profile"], c["stage"], status, times, flush=True)
 
 
 if __name__ == "__main__":
