@@ -105,15 +105,20 @@ def started_commit() -> tuple[str | None, bool | None]:
 
 
 def git_commit() -> tuple[str | None, bool | None]:
-    """(HEAD's SHA, whether tracked files differ from it). Outside a git checkout (a copy of the tree
-    without its .git, as a device machine gets one): the commit it was copied from as
-    `$INVRENDER_SOURCE_COMMIT` names it, dirty unknown; (None, None) without it."""
+    """(HEAD's SHA, whether tracked files differ from it), or (None, None) outside a git checkout.
+
+    `$INVRENDER_SOURCE_COMMIT`, when set, names the commit instead, dirty unknown: a copy of the tree on
+    another machine (a device machine's) may carry no .git, or an older one with this tree laid over it,
+    whose HEAD would name the wrong commit."""
+    named = os.environ.get("INVRENDER_SOURCE_COMMIT")
+    if named:
+        return named, None
     root = project_root()
     try:
         sha = subprocess.run(["git", "rev-parse", "HEAD"], cwd=root, capture_output=True, text=True, check=True)
         dirty = subprocess.run(["git", "diff", "--quiet", "HEAD", "--"], cwd=root, capture_output=True)
     except (OSError, subprocess.CalledProcessError):
-        return os.environ.get("INVRENDER_SOURCE_COMMIT") or None, None
+        return None, None
     return sha.stdout.strip(), dirty.returncode != 0
 
 

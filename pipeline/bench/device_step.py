@@ -10,10 +10,12 @@ written (a profile's networks take any size; the paper's 320x240 needs its own s
 LightNet needs a frozen MaterialNet: the profile's own, untrained (its weights do not matter to the
 step's cost or to whether it runs), written beside the report as an export.
 
-Reported per case, each part on its own so that one failure does not hide the others:
+Reported per case (`--parts`), each part on its own so that one failure does not hide the others:
 - `agreement`: the same weights on the same views, CPU against device: MaterialNet's maps (relative L2
   difference per map) and LightNet's light errors at every probe texel (deterministic: SSRT, the branches'
   queries). The re-render scores are not compared: their random draws differ between devices.
+- `operations`: what one step issues from the host: operations, aten operations (kernel launches on a
+  GPU) and host reads of a device value (each a synchronisation), counted by the profiler.
 - `timing`: the median synchronised step time on each device (`--steps` timed after `--warmup`), the
   ratio, and the device's peak memory.
 - `learning`: `--learn-steps` steps on the device over `--learn-batches` fixed batches with the stage's
@@ -45,7 +47,7 @@ from pipeline.bench.common import (
 )
 
 STAGES = ("train_material", "train_lighting")
-PARTS = ("setup", "agreement", "timing", "learning")
+PARTS = ("setup", "agreement", "operations", "timing", "learning")
 
 
 def move(batch, device: str):
@@ -170,6 +172,34 @@ def timed_steps(system, optimizer, cfg, train: list[dict], device: str, warmup: 
     return times
 
 
+def operations(system, optimizer, cfg, train: list[dict], device: str, steps: int = 3) -> dict:
+    """What an optimiser step issues from the host, the mean over `steps` steps after one untimed step
+    (the profiler's CPU events, `train_step.self_cpu_times`): every operation, the aten operations among
+    them (each at least one kernel launch on a GPU) and the host reads of a device value
+    (`aten::_local_scalar_dense`, `.item()`: each waits for the device). Counts, not times: the same on any
+    device up to compiled regions; they vary from step to step with the rays drawn (the SSRT march runs
+    until its last ray ends)."""
+    from torch.profiler import ProfilerActivity, profile
+
+    from pipeline.bench.train_step import self_cpu_times
+
+    clip = gradient_clip(cfg)
+    moved = [move(b, device) for b in train]
+    optimiser_step(system, optimizer, moved[0], 0, clip)
+    with profile(activities=[ProfilerActivity.CPU]) as prof:
+        for i in range(1, steps + 1):
+            optimiser_step(system, optimizer, moved[i % len(moved)], i, clip)
+        synchronise(device)
+    totals = self_cpu_times(prof.profiler.kineto_results.events())
+    aten = [v["count"] for k, v in totals.items() if k.startswith("aten::")]
+    return {
+        "steps": steps,
+        "operations_per_step": sum(v["count"] for v in totals.values()) / steps,
+        "aten_operations_per_step": sum(aten) / steps,
+        "host_reads_per_step": totals.get("aten::_local_scalar_dense", {}).get("count", 0) / steps,
+    }
+
+
 def light_nmse(system, moved: list[dict]) -> float | None:
     """The surface probes' nMSE pooled over `moved` batches (evaluation mode), or None for a MaterialNet."""
     from pipeline.metrics.lighting import light_errors
@@ -239,7 +269,11 @@ def run_case(profile, stage, args, material) -> dict:
     part(record, "setup", setup)
     if "dev" not in state:
         return record
-    part(record, "agreement", lambda: agreement(stage, state["cpu"][0], state["dev"][0], state["test"], args.device))
+    if "agreement" in args.parts:
+        cpu_system, dev_system = state["cpu"][0], state["dev"][0]
+        part(record, "agreement", lambda: agreement(stage, cpu_system, dev_system, state["test"], args.device))
+    if "operations" in args.parts:
+        part(record, "operations", lambda: operations(*state["dev"], state["train"], args.device))
 
     def timing():
         if args.device.startswith("cuda"):
@@ -254,7 +288,8 @@ def run_case(profile, stage, args, material) -> dict:
             out["speedup"] = out["cpu_median_s"] / out["device_median_s"]
         return out
 
-    part(record, "timing", timing)
+    if "timing" in args.parts:
+        part(record, "timing", timing)
 
     def learn():
         from hydra.utils import instantiate
@@ -264,7 +299,8 @@ def run_case(profile, stage, args, material) -> dict:
         optimizer = instantiate(cfg.optim.optimizer)(system.net.parameters())
         return learning(system, optimizer, cfg, state["train"], args.device, args.learn_steps)
 
-    part(record, "learning", learn)
+    if "learning" in args.parts:
+        part(record, "learning", learn)
     return record
 
 
@@ -307,6 +343,7 @@ def main(argv=None) -> None:
     p.add_argument("--learn-steps", type=int, default=200)
     p.add_argument("--learn-batches", type=int, default=2)
     p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--parts", nargs="+", default=list(PARTS[1:]), choices=PARTS[1:], help="what to measure")
     p.add_argument("--name", default="device_step")
     p.add_argument("--override", action="append", default=[], help="an override for every stage (repeatable)")
     add_threads_option(p)

@@ -3,6 +3,7 @@ bench that did not measure the current profile's configuration."""
 
 import json
 import re
+from pathlib import Path
 
 import pytest
 
@@ -54,11 +55,13 @@ def test_provenance_names_the_commit_the_process_started_on(monkeypatch):
     assert common.provenance()["commit"] == before
 
 
-def test_a_copy_without_git_names_the_commit_it_was_copied_from(monkeypatch, tmp_path):
-    # a device machine gets the tree without .git: the commit comes from the environment, dirty unknown
+def test_a_copied_tree_names_the_commit_it_was_copied_from(monkeypatch, tmp_path):
+    # a device machine's copy has no .git, or an older one under this tree: the environment names the commit
     monkeypatch.setattr(common, "project_root", lambda: tmp_path)
     monkeypatch.setenv("GIT_CEILING_DIRECTORIES", str(tmp_path.parent))
     monkeypatch.delenv("INVRENDER_SOURCE_COMMIT", raising=False)
     assert common.git_commit() == (None, None)
     monkeypatch.setenv("INVRENDER_SOURCE_COMMIT", "c" * 40)
+    assert common.git_commit() == ("c" * 40, None)
+    monkeypatch.setattr(common, "project_root", lambda: Path(__file__).parent)  # inside a checkout too
     assert common.git_commit() == ("c" * 40, None)
