@@ -8,19 +8,21 @@ profile's own batch size, optimiser and gradient clip), once on the CPU and once
 from the same seeded initialisation. The data are `--data-dir`'s shards at whatever size they were
 written (a profile's networks take any size; the paper's 320x240 needs its own synthesize run). A
 LightNet needs a frozen MaterialNet: the profile's own, untrained (its weights do not matter to the
-step's cost or to whether it runs), written beside the report as an export.
+step's cost or to whether it runs), exported to a temporary file.
 
-Reported per case (`--parts`), each part on its own so that one failure does not hide the others:
-- `agreement`: the same weights on the same views, CPU against device: MaterialNet's maps (relative L2
-  difference per map) and LightNet's light errors at every probe texel (deterministic: SSRT, the branches'
-  queries). The re-render scores are not compared: their random draws differ between devices.
+Reported per case (`--parts`), in this order (the device's parts first, so that a run stopped at its
+time limit keeps them), each on its own so that one failure does not hide the others:
 - `operations`: what one step issues from the host: operations, aten operations (kernel launches on a
   GPU) and host reads of a device value (each a synchronisation), counted by the profiler.
-- `timing`: the median synchronised step time on each device (`--steps` timed after `--warmup`), the
-  ratio, and the device's peak memory.
+- `timing`: the median synchronised step time on the device (`--steps` timed after `--warmup`) and its
+  peak memory.
 - `learning`: `--learn-steps` steps on the device over `--learn-batches` fixed batches with the stage's
-  optimiser and clip: the mean loss of the first and last tenth, and (LightNet) the probe nMSE on those
-  batches before and after.
+  optimiser and clip: the mean loss of the first and last tenth, and (LightNet) the surface probes' nMSE
+  on those batches before and after.
+- `agreement`: the same weights on the same views, CPU against device: MaterialNet's maps (relative L2
+  difference per map) and LightNet's radiance at every probe texel and its light errors (deterministic:
+  SSRT, the branches' queries). The re-render is not compared: its random draws differ between devices.
+- `cpu_timing`: the median step on the same host's CPU (`--cpu-steps` after one untimed), and the ratio.
 Writes reports/bench/<--name>.json and a PNG.
 """
 
@@ -47,7 +49,7 @@ from pipeline.bench.common import (
 )
 
 STAGES = ("train_material", "train_lighting")
-PARTS = ("setup", "agreement", "operations", "timing", "learning")
+PARTS = ("setup", "operations", "timing", "learning", "agreement", "cpu_timing")
 
 
 def move(batch, device: str):
@@ -269,11 +271,10 @@ def run_case(profile, stage, args, material) -> dict:
     part(record, "setup", setup)
     if "dev" not in state:
         return record
-    if "agreement" in args.parts:
-        cpu_system, dev_system = state["cpu"][0], state["dev"][0]
-        part(record, "agreement", lambda: agreement(stage, cpu_system, dev_system, state["test"], args.device))
+    # the device's parts first, the CPU's last: a run stopped at its time limit keeps what only the
+    # device can measure (a large profile's CPU side takes minutes)
     if "operations" in args.parts:
-        part(record, "operations", lambda: operations(*state["dev"], state["train"], args.device))
+        part(record, "operations", lambda: operations(*state["dev"], state["train"], args.device, args.operation_steps))
 
     def timing():
         if args.device.startswith("cuda"):
@@ -282,10 +283,6 @@ def run_case(profile, stage, args, material) -> dict:
         out = {"device_median_s": statistics.median(dev), "device_steps": len(dev)}
         if args.device.startswith("cuda"):
             out["device_peak_memory_gib"] = torch.cuda.max_memory_allocated() / 2**30
-        if args.cpu_steps > 0:
-            cpu = timed_steps(*state["cpu"], state["train"], "cpu", 1, args.cpu_steps)
-            out.update({"cpu_median_s": statistics.median(cpu), "cpu_steps": len(cpu)})
-            out["speedup"] = out["cpu_median_s"] / out["device_median_s"]
         return out
 
     if "timing" in args.parts:
@@ -301,6 +298,25 @@ def run_case(profile, stage, args, material) -> dict:
 
     if "learning" in args.parts:
         part(record, "learning", learn)
+    if "agreement" in args.parts:
+        # the device's copy has trained by now: compare the CPU's untouched system with a fresh copy of it
+        cpu_system = state["cpu"][0]
+        part(
+            record,
+            "agreement",
+            lambda: agreement(stage, cpu_system, copy.deepcopy(cpu_system).to(args.device), state["test"], args.device),
+        )
+
+    def cpu_timing():
+        cpu = timed_steps(*state["cpu"], state["train"], "cpu", 1, args.cpu_steps)
+        out = {"cpu_median_s": statistics.median(cpu), "cpu_steps": len(cpu)}
+        device = record.get("timing", {}).get("device_median_s")
+        if device:
+            out["speedup"] = out["cpu_median_s"] / device
+        return out
+
+    if "cpu_timing" in args.parts and args.cpu_steps > 0:
+        part(record, "cpu_timing", cpu_timing)
     return record
 
 
@@ -312,7 +328,10 @@ def plot(report: dict, path) -> None:
     y = range(len(cases))
     ax.barh([i + 0.2 for i in y], [c["timing"]["device_median_s"] * 1e3 for c in cases], 0.4, label=report["device"])
     ax.barh(
-        [i - 0.2 for i in y], [c["timing"].get("cpu_median_s", 0) * 1e3 for c in cases], 0.4, label="cpu (same host)"
+        [i - 0.2 for i in y],
+        [c.get("cpu_timing", c["timing"]).get("cpu_median_s", 0) * 1e3 for c in cases],
+        0.4,
+        label="cpu (same host)",
     )
     ax.set_yticks(list(y), labels, fontsize=7)
     ax.set_xscale("log")
@@ -339,7 +358,8 @@ def main(argv=None) -> None:
     p.add_argument("--data-dir", default="outputs/preprocess")
     p.add_argument("--warmup", type=int, default=3)
     p.add_argument("--steps", type=int, default=20, help="timed steps on the device")
-    p.add_argument("--cpu-steps", type=int, default=3, help="timed steps on the CPU (0: none)")
+    p.add_argument("--operation-steps", type=int, default=3, help="profiled steps of `operations`")
+    p.add_argument("--cpu-steps", type=int, default=2, help="timed steps on the CPU (0: none)")
     p.add_argument("--learn-steps", type=int, default=200)
     p.add_argument("--learn-batches", type=int, default=2)
     p.add_argument("--seed", type=int, default=0)
@@ -370,8 +390,10 @@ def main(argv=None) -> None:
 def summarise(c: dict) -> None:
     """One line per case: each part's outcome and the times."""
     status = {k: v["error"] if isinstance(v, dict) and "error" in v else "ok" for k, v in c.items() if k in PARTS}
-    t = c.get("timing") if isinstance(c.get("timing"), dict) else {}
-    times = {k: round(v, 4) for k, v in t.items() if isinstance(v, float)}
+    times = {}
+    for name in ("timing", "cpu_timing"):
+        if isinstance(c.get(name), dict):
+            times.update({k: round(v, 4) for k, v in c[name].items() if isinstance(v, float)})
     print(c["profile"], c["stage"], status, times, flush=True)
 
 
