@@ -519,6 +519,8 @@ def bench_block(name: str, data: dict, profile: str) -> list[str]:
         head = {f"nMSE ({kind})": v.get("nmse", {}) for kind, v in data.get("kinds", {}).items()}
     elif head is None and name.startswith("learning_curve"):
         head = {"each run on the held-out test split": [learning_row(r) for r in data.get("runs", [])]}
+    elif head is None and name.startswith("device_step"):
+        head = {f"each case on {data.get('device')} (CPU: the same host's)": device_rows(data)}
     elif head is None and name.startswith("overfit"):
         head = {"each run's last evaluation, on its training rooms": [overfit_row(r) for r in data.get("runs", [])]}
     elif head is None:
@@ -547,6 +549,51 @@ def bench_block(name: str, data: dict, profile: str) -> list[str]:
         ]
         lines += ["", "Quoted, not measured in this run:", "", *md_table(["figure", "value", "unit", "source"], rows)]
     return lines + [""]
+
+
+def device_rows(data: dict) -> list[dict]:
+    """`bench.device_step`'s rows: each case it ran (`device_row`), then each case its settings asked for
+    that it never reached (a run stopped at its time limit), so a missing case reads as missing."""
+    rows = [device_row(c) for c in data.get("cases", [])]
+    settings = data.get("settings", {})
+    done = {(c.get("profile"), c.get("stage")) for c in data.get("cases", [])}
+    for profile in settings.get("profiles", []):
+        for stage in settings.get("stages", []):
+            if (profile, stage) not in done:
+                rows.append({"profile": profile, "stage": stage, "failed or not run": "not reached: the run stopped"})
+    return rows
+
+
+def device_row(case: dict) -> dict:
+    """`bench.device_step`: one case's profile and stage, the parts that failed, and each part's headline
+    (step times in ms, peak memory, operations a step, the loss's first and last tenth, the largest
+    CPU/device difference)."""
+    row = {"profile": case.get("profile"), "stage": case.get("stage")}
+    failed = [k for k, v in case.items() if isinstance(v, dict) and "error" in v]
+    setup = case.get("setup") if isinstance(case.get("setup"), dict) else {}
+    row["parameters"], row["batch"] = setup.get("parameters"), setup.get("batch_size")
+    timing = {}
+    for name in ("timing", "cpu_timing"):  # older runs kept the CPU's step inside `timing`
+        if isinstance(case.get(name), dict) and "error" not in case[name]:
+            timing.update(case[name])
+    for key, label in (("device_median_s", "device step (ms)"), ("cpu_median_s", "CPU step (ms)")):
+        if key in timing:
+            row[label] = timing[key] * 1e3
+    row["CPU / device"] = timing.get("speedup")
+    row["peak memory (GiB)"] = timing.get("device_peak_memory_gib")
+    ops = case.get("operations") if isinstance(case.get("operations"), dict) else {}
+    row["aten operations a step"] = ops.get("aten_operations_per_step")
+    row["host reads a step"] = ops.get("host_reads_per_step")
+    learn = case.get("learning") if isinstance(case.get("learning"), dict) else {}
+    row["loss, first tenth"], row["loss, last tenth"] = learn.get("loss_first_tenth"), learn.get("loss_last_tenth")
+    agreement = case.get("agreement") if isinstance(case.get("agreement"), dict) else {}
+    diffs = [v for v in agreement.values() if isinstance(v, int | float)]
+    diffs += [
+        v["radiance_relative_l2"] for v in agreement.values() if isinstance(v, dict) and "radiance_relative_l2" in v
+    ]  # noqa: E501
+    row["largest CPU/device relative L2"] = max(diffs) if diffs else None
+    row["failed or not run"] = ", ".join(failed) or ("not reached" if not setup else "none")
+    return row
 
 
 def overfit_row(run: dict) -> dict:

@@ -69,3 +69,25 @@ def test_a_failing_part_is_recorded_and_the_others_still_run():
     device_step.part(record, "fine", lambda: {"x": 1})
     assert record["broken"]["error"].startswith("ZeroDivisionError") and "Traceback" in record["broken"]["traceback"]
     assert record["fine"] == {"x": 1}
+
+
+def test_the_results_page_shows_failed_and_unreached_cases():
+    from pipeline.tracking.results_page import device_rows
+
+    data = {
+        "settings": {"profiles": ["tiny", "paper"], "stages": ["train_lighting"]},
+        "cases": [
+            {
+                "profile": "tiny",
+                "stage": "train_lighting",
+                "setup": {"parameters": 10, "batch_size": 4},
+                "timing": {"device_median_s": 0.5},
+                "cpu_timing": {"cpu_median_s": 1.0, "speedup": 2.0},
+                "agreement": {"error": "RuntimeError: boom", "traceback": "..."},
+            }
+        ],
+    }
+    tiny, paper = device_rows(data)
+    assert tiny["device step (ms)"] == 500 and tiny["CPU step (ms)"] == 1000 and tiny["CPU / device"] == 2.0
+    assert tiny["failed or not run"] == "agreement" and tiny["largest CPU/device relative L2"] is None
+    assert paper["profile"] == "paper" and paper["failed or not run"].startswith("not reached")
