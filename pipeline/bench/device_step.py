@@ -321,31 +321,65 @@ def run_case(profile, stage, args, material) -> dict:
 
 
 def plot(report: dict, path) -> None:
-    cases = [c for c in report["cases"] if isinstance(c.get("timing"), dict) and "device_median_s" in c["timing"]]
-    fig = Figure(figsize=(9, 3.8))
-    ax, bx = fig.subplots(1, 2)
-    labels = [f"{c['profile']}\n{c['stage']}" for c in cases]
-    y = range(len(cases))
-    ax.barh([i + 0.2 for i in y], [c["timing"]["device_median_s"] * 1e3 for c in cases], 0.4, label=report["device"])
-    ax.barh(
-        [i - 0.2 for i in y],
-        [c.get("cpu_timing", c["timing"]).get("cpu_median_s", 0) * 1e3 for c in cases],
-        0.4,
-        label="cpu (same host)",
-    )
-    ax.set_yticks(list(y), labels, fontsize=7)
-    ax.set_xscale("log")
-    ax.set_xlabel("median training step (ms, log)")
-    ax.legend(fontsize=7)
-    for c in report["cases"]:
-        learn = c.get("learning")
-        if isinstance(learn, dict) and "losses" in learn:
-            bx.plot(learn["losses"], lw=0.8, label=f"{c['profile']} {c['stage']}")
-    bx.set_yscale("log")
-    bx.set_xlabel(f"step on {report['device']} (fixed batches)")
-    bx.set_ylabel("training loss")
-    bx.legend(fontsize=6)
-    fig.suptitle("training steps on an accelerator: time and a memorising check", fontsize=9)
+    """Up to three panels, each drawn only where the run measured it: median step times (device and the
+    same host's CPU), the operations and host reads a step, and the memorising runs' losses."""
+    cases = report["cases"]
+    timed = [c for c in cases if isinstance(c.get("timing"), dict) and "device_median_s" in c["timing"]]
+    counted = [
+        c for c in cases if isinstance(c.get("operations"), dict) and "aten_operations_per_step" in c["operations"]
+    ]  # noqa: E501
+    learnt = [c for c in cases if isinstance(c.get("learning"), dict) and "losses" in c["learning"]]
+    panels = [p for p, rows in (("time", timed), ("operations", counted), ("learning", learnt)) if rows]
+    if not panels:
+        panels = ["time"]
+    fig = Figure(figsize=(4.6 * len(panels), 3.8))
+    axes = dict(zip(panels, fig.subplots(1, len(panels), squeeze=False)[0], strict=True))
+
+    def label(c):
+        return f"{c['profile']}\n{c['stage']}"
+
+    if "time" in axes:
+        ax = axes["time"]
+        y = range(len(timed))
+        ax.barh(
+            [i + 0.2 for i in y], [c["timing"]["device_median_s"] * 1e3 for c in timed], 0.4, label=report["device"]
+        )
+        cpu = [c.get("cpu_timing", c["timing"]).get("cpu_median_s", 0) * 1e3 for c in timed]
+        ax.barh([i - 0.2 for i in y], cpu, 0.4, label="cpu (same host)")
+        ax.set_yticks(list(y), [label(c) for c in timed], fontsize=7)
+        ax.set_xscale("log")
+        ax.set_xlabel("median training step (ms, log)")
+        ax.legend(fontsize=7)
+        if not timed:
+            ax.set_title("no step timed", fontsize=8)
+    if "operations" in axes:
+        ax = axes["operations"]
+        y = range(len(counted))
+        ops = [c["operations"] for c in counted]
+        ax.barh([i + 0.2 for i in y], [o["aten_operations_per_step"] for o in ops], 0.4, label="aten operations")
+        ax.barh([i - 0.2 for i in y], [o["host_reads_per_step"] for o in ops], 0.4, label="host reads (syncs)")
+        for i, o in enumerate(ops):
+            ax.text(
+                o["aten_operations_per_step"],
+                i + 0.2,
+                f" {o['aten_operations_per_step']:,.0f}",
+                va="center",
+                fontsize=6,
+            )
+            ax.text(o["host_reads_per_step"], i - 0.2, f" {o['host_reads_per_step']:,.0f}", va="center", fontsize=6)
+        ax.set_yticks(list(y), [label(c) for c in counted], fontsize=7)
+        ax.set_xscale("log")
+        ax.set_xlabel("per training step (log; profiled on " + report["device"] + ")")
+        ax.legend(fontsize=7)
+    if "learning" in axes:
+        ax = axes["learning"]
+        for c in learnt:
+            ax.plot(c["learning"]["losses"], lw=0.8, label=f"{c['profile']} {c['stage']}")
+        ax.set_yscale("log")
+        ax.set_xlabel(f"step on {report['device']} (fixed batches)")
+        ax.set_ylabel("training loss")
+        ax.legend(fontsize=6)
+    fig.suptitle(f"training steps on {report['device']}: " + ", ".join(panels), fontsize=9)
     fig.tight_layout()
     fig.savefig(path, dpi=120)
 
