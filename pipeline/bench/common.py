@@ -140,8 +140,20 @@ def provenance() -> dict:
         "command": " ".join(["python", "-m", _main_module(), *sys.argv[1:]]),
         "date": datetime.datetime.now(datetime.UTC).strftime("%Y-%m-%d"),
         "profile": ",".join(profiles) if profiles else None,
-        "configs": list(COMPOSED),
+        "configs": distinct_configs(COMPOSED),
     }
+
+
+def distinct_configs(composed: list[dict]) -> list[dict]:
+    """`composed` with each (config, hash) once, in first-composed order: a bench that builds a stage's
+    system several times composes the same config each time (its overrides may differ only in paths)."""
+    seen, out = set(), []
+    for c in composed:
+        key = (c["config"], c["sha256"])
+        if key not in seen:
+            seen.add(key)
+            out.append(c)
+    return out
 
 
 def median_seconds(fn, repeats: int = 3, warmup: int = 1) -> float:

@@ -402,6 +402,10 @@ def main(argv=None) -> None:
     p.add_argument("--override", action="append", default=[], help="an override for every stage (repeatable)")
     add_threads_option(p)
     a = p.parse_args(argv)
+    try:
+        torch.empty(0, device=a.device)
+    except (RuntimeError, AssertionError) as exc:  # no such device here: say so before building anything
+        p.error(f"--device {a.device}: not available here ({exc})")
     apply_threads(a.threads)
     data_dir = str(Path(a.data_dir).resolve())
     a.data_dir = data_dir

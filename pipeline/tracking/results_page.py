@@ -494,7 +494,8 @@ def provenance_line(data: dict, profile: str) -> str:
             "configuration record; re-run the bench before relying on it."
         )
     commit = (prov.get("commit") or "unknown")[:10] + (" with uncommitted changes" if prov.get("dirty") else "")
-    hashes = ", ".join(f"`{c['config']}` {c['sha256']}" for c in prov.get("configs", [])) or "none"
+    # each (config, hash) once: older JSONs recorded a config every time a bench composed it
+    hashes = ", ".join(dict.fromkeys(f"`{c['config']}` {c['sha256']}" for c in prov.get("configs", []))) or "none"
     line = f"Measured {prov.get('date', '?')} at commit {commit}; profile {prov.get('profile')}; configs {hashes}."
     if prov.get("profile") is None:
         return line + " Its own settings (no stage config): see the JSON."

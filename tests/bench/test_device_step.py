@@ -63,6 +63,13 @@ def test_the_device_bench_runs_every_part_on_the_cpu(micro_shards, monkeypatch, 
     assert (tmp_path / "d.png").stat().st_size > 5_000
 
 
+@pytest.mark.skipif(torch.cuda.is_available(), reason="needs a machine without CUDA")
+def test_a_device_the_machine_lacks_is_refused_at_once(capsys):
+    with pytest.raises(SystemExit):
+        device_step.main(["--device", "cuda"])
+    assert "--device cuda: not available here" in capsys.readouterr().err
+
+
 def test_a_failing_part_is_recorded_and_the_others_still_run():
     record = {}
     device_step.part(record, "broken", lambda: 1 / 0)

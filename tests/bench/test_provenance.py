@@ -27,6 +27,15 @@ def test_a_bench_json_records_commit_profile_and_config_hash(tmp_path):
     assert re.fullmatch(r"[0-9a-f]{16}", config["sha256"])
 
 
+def test_a_config_composed_again_is_recorded_once(tmp_path):
+    for _ in range(3):
+        common.compose("train_lighting", ["profile=micro"])
+    common.compose("train_lighting", ["profile=micro", "paths.outputs=/elsewhere"])  # where, not what
+    common.compose("train_material", ["profile=micro"])
+    configs = common.provenance()["configs"]
+    assert [c["config"] for c in configs] == ["train_lighting", "train_material"]
+
+
 def test_the_config_hash_follows_what_runs_not_where_files_are():
     base = common.config_hash(common.compose("train_lighting", ["profile=micro"]))
     assert common.config_hash(common.compose("train_lighting", ["profile=micro"])) == base
