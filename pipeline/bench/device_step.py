@@ -174,13 +174,29 @@ def timed_steps(system, optimizer, cfg, train: list[dict], device: str, warmup: 
     return times
 
 
-def operations(system, optimizer, cfg, train: list[dict], device: str, steps: int = 3) -> dict:
+# operations whose result size or value the host must read from the device before it can go on: each
+# waits for everything queued before it on a GPU (on a CPU they cost nothing special)
+SYNCING = (
+    "aten::_local_scalar_dense",  # .item(), float(t), bool(t), int(t)
+    "aten::nonzero",  # boolean-mask indexing, torch.where(condition)
+    "aten::masked_select",
+    "aten::_unique2",
+    "aten::unique_consecutive",
+    "aten::unique_dim",
+)
+
+
+def operations(system, optimizer, cfg, train: list[dict], device: str, steps: int = 3, sites: int = 12) -> dict:
     """What an optimiser step issues from the host, the mean over `steps` steps after one untimed step
     (the profiler's CPU events, `train_step.self_cpu_times`): every operation, the aten operations among
-    them (each at least one kernel launch on a GPU) and the host reads of a device value
-    (`aten::_local_scalar_dense`, `.item()`: each waits for the device). Counts, not times: the same on any
-    device up to compiled regions; they vary from step to step with the rays drawn (the SSRT march runs
-    until its last ray ends)."""
+    them (each at least one kernel launch on a GPU), the host reads of a device value
+    (`aten::_local_scalar_dense`, `.item()`) and every operation that synchronises (`SYNCING`: each waits
+    for the device), per name. Counts, not times: the same on any device up to compiled regions; they
+    vary from step to step with the rays drawn (the SSRT march runs until its last ray ends). Then one
+    more step profiled with Python stacks: the `sites` project source lines that issue the most
+    synchronising operations (the innermost frame under pipeline/), per step."""
+    from collections import Counter
+
     from torch.profiler import ProfilerActivity, profile
 
     from pipeline.bench.train_step import self_cpu_times
@@ -194,11 +210,29 @@ def operations(system, optimizer, cfg, train: list[dict], device: str, steps: in
         synchronise(device)
     totals = self_cpu_times(prof.profiler.kineto_results.events())
     aten = [v["count"] for k, v in totals.items() if k.startswith("aten::")]
+    syncing = {k: totals[k]["count"] / steps for k in SYNCING if k in totals}
+    with profile(activities=[ProfilerActivity.CPU], with_stack=True) as traced:
+        optimiser_step(system, optimizer, moved[0], steps + 1, clip)
+        synchronise(device)
+    where = Counter()
+    for event in traced.events():
+        if event.name in SYNCING:
+            # with stacks, each Python call is an event of its own ("path.py(line): name"): the innermost
+            # ancestor in the project's code is the site
+            owner = event.cpu_parent
+            while owner is not None and not ("pipeline/" in owner.name and ".py(" in owner.name):
+                owner = owner.cpu_parent
+            if owner is not None and "pipeline/bench/" in owner.name:
+                owner = None
+            where[owner.name.split("pipeline/", 1)[1] if owner else "(outside pipeline/)"] += 1
     return {
         "steps": steps,
         "operations_per_step": sum(v["count"] for v in totals.values()) / steps,
         "aten_operations_per_step": sum(aten) / steps,
         "host_reads_per_step": totals.get("aten::_local_scalar_dense", {}).get("count", 0) / steps,
+        "synchronising_per_step": sum(syncing.values()),
+        "synchronising_by_operation": syncing,
+        "synchronising_sites_one_step": dict(where.most_common(sites)),
     }
 
 
