@@ -53,12 +53,15 @@ def test_the_device_bench_runs_every_part_on_the_cpu(micro_shards, monkeypatch, 
     for case in cases.values():
         assert not [k for k in device_step.PARTS if "error" in case[k]], case
         assert case["timing"]["device_median_s"] > 0 and case["cpu_timing"]["speedup"] > 0
-        assert case["operations"]["aten_operations_per_step"] > 0
+        ops = case["operations"]
+        assert ops["aten_operations_per_step"] > 0 and ops["synchronising_per_step"] >= ops["host_reads_per_step"]
         assert case["learning"]["finite"] and case["learning"]["steps"] == 2
     material, light = cases["train_material"], cases["train_lighting"]
     assert all(v == 0.0 for v in material["agreement"].values())  # the same device: the same numbers
     assert light["agreement"]["surf"]["radiance_relative_l2"] == 0.0
     assert 0 < light["learning"]["surf_light_nmse_before"] < 10
+    # the sites name project functions: the SSRT march synchronises on every live-ray count
+    assert any(site.startswith("ops/ssrt.py") for site in light["operations"]["synchronising_sites_one_step"])
     device_step.plot({**written, "device": "cpu"}, tmp_path / "d.png")
     assert (tmp_path / "d.png").stat().st_size > 5_000
 
