@@ -391,7 +391,8 @@ def plot(report: dict, path) -> None:
         y = range(len(counted))
         ops = [c["operations"] for c in counted]
         ax.barh([i + 0.2 for i in y], [o["aten_operations_per_step"] for o in ops], 0.4, label="aten operations")
-        ax.barh([i - 0.2 for i in y], [o["host_reads_per_step"] for o in ops], 0.4, label="host reads (syncs)")
+        waits = [o.get("synchronising_per_step", o["host_reads_per_step"]) for o in ops]
+        ax.barh([i - 0.2 for i in y], waits, 0.4, label="synchronising operations")
         for i, o in enumerate(ops):
             ax.text(
                 o["aten_operations_per_step"],
@@ -400,7 +401,7 @@ def plot(report: dict, path) -> None:
                 va="center",
                 fontsize=6,
             )
-            ax.text(o["host_reads_per_step"], i - 0.2, f" {o['host_reads_per_step']:,.0f}", va="center", fontsize=6)
+            ax.text(waits[i], i - 0.2, f" {waits[i]:,.0f}", va="center", fontsize=6)
         ax.set_yticks(list(y), [label(c) for c in counted], fontsize=7)
         ax.set_xscale("log")
         ax.set_xlabel("per training step (log; profiled on " + report["device"] + ")")

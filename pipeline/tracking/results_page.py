@@ -585,6 +585,11 @@ def device_row(case: dict) -> dict:
     ops = case.get("operations") if isinstance(case.get("operations"), dict) else {}
     row["aten operations a step"] = ops.get("aten_operations_per_step")
     row["host reads a step"] = ops.get("host_reads_per_step")
+    row["synchronising a step"] = ops.get("synchronising_per_step")
+    sites = ops.get("synchronising_sites_one_step") or {}
+    if sites:  # the project function that makes the device wait most often
+        site, count = max(sites.items(), key=lambda kv: kv[1])
+        row["most synchronising site (one step)"] = f"{site}: {count}"
     learn = case.get("learning") if isinstance(case.get("learning"), dict) else {}
     row["loss, first tenth"], row["loss, last tenth"] = learn.get("loss_first_tenth"), learn.get("loss_last_tenth")
     agreement = case.get("agreement") if isinstance(case.get("agreement"), dict) else {}
