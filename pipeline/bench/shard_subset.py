@@ -20,19 +20,21 @@ from pipeline.data.datasets import read_manifest
 
 
 def _view_arrays(z, count: int) -> list[dict[str, np.ndarray]]:
-    """Per view of an open shard: {key: its rows} for every key (probe arrays cut by their offsets)."""
+    """Per view of an open shard: {key: its rows} for every key (probe arrays cut by their offsets). Each
+    array is read once: an npz file decompresses a key again on every access."""
+    arrays = {key: z[key] for key in z.files}
     views = []
     for v in range(count):
         d = {}
-        for key in z.files:
+        for key, array in arrays.items():
             if key.endswith("_offsets"):
                 continue
             prefix = next((p for p in ("light_surf_", "light_free_") if key.startswith(p)), None)
             if prefix is None:
-                d[key] = z[key][v]
+                d[key] = array[v]
             else:
-                off = z[f"{prefix}offsets"]
-                d[key] = z[key][off[v] : off[v + 1]]
+                off = arrays[f"{prefix}offsets"]
+                d[key] = array[off[v] : off[v + 1]]
         views.append(d)
     return views
 
