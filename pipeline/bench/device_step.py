@@ -158,10 +158,10 @@ def agreement(stage: str, cpu_system, dev_system, batch: dict, device: str) -> d
         dev_system.train()
 
 
-def timed_steps(system, optimizer, cfg, train: list[dict], device: str, warmup: int, steps: int) -> list[float]:
-    """Wall times (s) of `steps` synchronised optimiser steps after `warmup` untimed ones, cycling `train`."""
+def timed_steps(system, optimizer, cfg, moved: list[dict], device: str, warmup: int, steps: int) -> list[float]:
+    """Wall times (s) of `steps` synchronised optimiser steps after `warmup` untimed ones, cycling the
+    batches `moved` (already on `device`)."""
     clip = gradient_clip(cfg)
-    moved = [move(b, device) for b in train]
     times = []
     for i in range(warmup + steps):
         batch = moved[i % len(moved)]
@@ -186,7 +186,7 @@ SYNCING = (
 )
 
 
-def operations(system, optimizer, cfg, train: list[dict], device: str, steps: int = 3, sites: int = 12) -> dict:
+def operations(system, optimizer, cfg, moved: list[dict], device: str, steps: int = 3, sites: int = 12) -> dict:
     """What an optimiser step issues from the host, the mean over `steps` steps after one untimed step
     (the profiler's CPU events, `train_step.self_cpu_times`): every operation, the aten operations among
     them (each at least one kernel launch on a GPU), the host reads of a device value
@@ -202,7 +202,6 @@ def operations(system, optimizer, cfg, train: list[dict], device: str, steps: in
     from pipeline.bench.train_step import self_cpu_times
 
     clip = gradient_clip(cfg)
-    moved = [move(b, device) for b in train]
     optimiser_step(system, optimizer, moved[0], 0, clip)
     with profile(activities=[ProfilerActivity.CPU]) as prof:
         for i in range(1, steps + 1):
@@ -253,16 +252,16 @@ def light_nmse(system, moved: list[dict]) -> float | None:
     return light_errors(*(torch.cat([p[i] for p in parts]) for i in range(3)))["light_nmse"]
 
 
-def learning(system, optimizer, cfg, train: list[dict], device: str, steps: int) -> dict:
-    """`steps` optimiser steps over the fixed batches `train` on `device`: the loss's first and last tenth."""
+def learning(system, optimizer, cfg, moved: list[dict], steps: int) -> dict:
+    """`steps` optimiser steps over the fixed batches `moved` (on the system's device): the loss's first and
+    last tenth."""
     clip = gradient_clip(cfg)
-    moved = [move(b, device) for b in train]
     before = light_nmse(system, moved)
     losses = [optimiser_step(system, optimizer, moved[i % len(moved)], i, clip) for i in range(steps)]
     tenth = max(steps // 10, 1)
     return {
         "steps": steps,
-        "batches": len(train),
+        "batches": len(moved),
         "loss_first_tenth": statistics.fmean(losses[:tenth]),
         "loss_last_tenth": statistics.fmean(losses[-tenth:]),
         "finite": all(map(lambda x: x == x and abs(x) != float("inf"), losses)),
@@ -295,6 +294,7 @@ def run_case(profile, stage, args, material) -> dict:
         state["dev"] = (dev_system, instantiate(cfg.optim.optimizer)(dev_system.net.parameters()), cfg)
         state["train"] = batches(cfg, stage, args.data_dir, max(args.learn_batches, 2), args.seed)
         state["test"] = batches(cfg, stage, args.data_dir, 1, args.seed, split="test")[0]
+        state["moved"] = [move(b, args.device) for b in state["train"]]  # once, for every device part
         return {
             "batch_size": int(cfg.batch_size),
             "image": list(state["train"][0]["im"].shape[-2:]),
@@ -308,12 +308,12 @@ def run_case(profile, stage, args, material) -> dict:
     # the device's parts first, the CPU's last: a run stopped at its time limit keeps what only the
     # device can measure (a large profile's CPU side takes minutes)
     if "operations" in args.parts:
-        part(record, "operations", lambda: operations(*state["dev"], state["train"], args.device, args.operation_steps))
+        part(record, "operations", lambda: operations(*state["dev"], state["moved"], args.device, args.operation_steps))
 
     def timing():
         if args.device.startswith("cuda"):
             torch.cuda.reset_peak_memory_stats()
-        dev = timed_steps(*state["dev"], state["train"], args.device, args.warmup, args.steps)
+        dev = timed_steps(*state["dev"], state["moved"], args.device, args.warmup, args.steps)
         out = {"device_median_s": statistics.median(dev), "device_steps": len(dev)}
         if args.device.startswith("cuda"):
             out["device_peak_memory_gib"] = torch.cuda.max_memory_allocated() / 2**30
@@ -328,7 +328,7 @@ def run_case(profile, stage, args, material) -> dict:
         system, _, cfg = build_case(profile, stage, args.data_dir, material, args.seed, args.override)
         system = system.to(args.device)
         optimizer = instantiate(cfg.optim.optimizer)(system.net.parameters())
-        return learning(system, optimizer, cfg, state["train"], args.device, args.learn_steps)
+        return learning(system, optimizer, cfg, state["moved"], args.learn_steps)
 
     if "learning" in args.parts:
         part(record, "learning", learn)
@@ -361,7 +361,7 @@ def plot(report: dict, path) -> None:
     timed = [c for c in cases if isinstance(c.get("timing"), dict) and "device_median_s" in c["timing"]]
     counted = [
         c for c in cases if isinstance(c.get("operations"), dict) and "aten_operations_per_step" in c["operations"]
-    ]  # noqa: E501
+    ]
     learnt = [c for c in cases if isinstance(c.get("learning"), dict) and "losses" in c["learning"]]
     panels = [p for p, rows in (("time", timed), ("operations", counted), ("learning", learnt)) if rows]
     if not panels:

@@ -596,7 +596,7 @@ def device_row(case: dict) -> dict:
     diffs = [v for v in agreement.values() if isinstance(v, int | float)]
     diffs += [
         v["radiance_relative_l2"] for v in agreement.values() if isinstance(v, dict) and "radiance_relative_l2" in v
-    ]  # noqa: E501
+    ]
     row["largest CPU/device relative L2"] = max(diffs) if diffs else None
     row["failed or not run"] = ", ".join(failed) or ("not reached" if not setup else "none")
     return row
