@@ -1,0 +1,286 @@
+"""`python -m pipeline.bench.blend_floor`: the light error LightNet's blend leaves with perfect sources.
+
+LightNet answers a ray that SSRT lands on a pixel with the local branch, and blends in the out-of-view
+branch by the confidence u = tanh(k gap) (gap: metres the ray passes behind the pixel's surface);
+`out_threshold` t keeps the local answer alone where u < t. This bench asks what error that rule leaves
+when both sources are as good as they can be, so no network is trained:
+- the local source is the image's own radiance at the hit pixel (what the local branch is fed and
+  fitted towards; it is the radiance leaving the pixel towards the camera, so a glossy pixel is off by
+  its view dependence);
+- the out-of-view source is the probe texel's true radiance (a perfect branch; within a texel its S
+  directions share the texel's mean).
+On the ground-truth G-buffers of the first `--views` training views (the overfit bench's rooms), every
+probe texel at the evaluation's stratified directions, each rule's texel value (the mean over its S
+directions) is scored as the stage scores LightNet: the pooled normalised MSE per probe kind and each ray
+class's contribution to it (`light_energy.EnergyTally`; classes labelled by the metric's own rule at
+k = 10 for every row, so the rows share their classes). A rule whose surface nMSE is above a target
+cannot meet it whatever the two branches learn.
+Writes reports/bench/blend_floor.json (or `--name`) and a PNG.
+"""
+
+from __future__ import annotations
+
+import argparse
+
+import numpy as np
+import torch
+from matplotlib.figure import Figure
+from tqdm import tqdm
+
+from pipeline.bench.common import add_threads_option, apply_threads, publish
+from pipeline.bench.light_energy import RAY_CLASSES, EnergyTally
+from pipeline.data.lighting import probe_rays
+from pipeline.models.light_net import confidence, trace_views
+
+LABEL_K = 10.0  # the metric's classes: u = tanh(10 gap) at every row (metrics.lighting.ray_classes)
+KINDS = ("surf", "free")
+# (name, k, out_threshold): the paper (t = 0), tiny (t = 0.9), and sharper confidences
+DEFAULT_RULES = (
+    ("k 10, t 0 (paper)", 10.0, 0.0),
+    ("k 10, t 0.9 (tiny)", 10.0, 0.9),
+    ("k 30, t 0", 30.0, 0.0),
+    ("k 100, t 0", 100.0, 0.0),
+    ("k 1000, t 0", 1000.0, 0.0),
+    ("hits local only", 0.0, 0.0),
+)
+
+
+def parse_rule(text: str) -> tuple[str, float, float]:
+    """'NAME:K:T' -> (NAME, K, T); a clear error naming the argument otherwise."""
+    parts = text.split(":")
+    try:
+        name, k, t = parts[0], float(parts[1]), float(parts[2])
+    except (IndexError, ValueError):
+        raise SystemExit(f"--rule {text!r}: expected NAME:K:T, e.g. 'k 30:30:0'") from None
+    if k < 0 or not 0.0 <= t <= 1.0:
+        raise SystemExit(f"--rule {text!r}: k must be >= 0 and t in [0, 1]")
+    return name, k, t
+
+
+def blended(local: torch.Tensor, out: torch.Tensor, hit: torch.Tensor, gap: torch.Tensor, k: float, t: float):
+    """Per direction (N, 3): misses take `out`; hits (1 - u) local + u out where u = tanh(k gap) >= t, else
+    `local` alone (LightNet.forward's rule with perfect sources). k = 0 answers every hit locally."""
+    u = confidence(hit, gap, k)
+    use_out = (~hit) | (u >= t) if t > 0 else torch.ones_like(hit)
+    mix = (1 - u).unsqueeze(-1) * local + u.unsqueeze(-1) * out
+    return torch.where(use_out.unsqueeze(-1), mix, local)
+
+
+def ground_truth_gbuffers(batch: dict) -> dict:
+    """depth (1, H, W) (0 where masked) and normal (1, 3, H, W) of a collated one-view batch."""
+    depth = batch["depth"][:, 0]
+    keep = batch["mask"][:, 0].bool() & torch.isfinite(depth)
+    return {"depth": torch.where(keep, depth, torch.zeros_like(depth)), "normal": batch["normal"]}
+
+
+def view_rays(batch: dict, gb: dict, kind: str):
+    """A one-view batch's `kind` probe texels traced on G-buffers gb: the directions' origin, wi (M S, 3),
+    the image's radiance at the hit pixel (M S, 3), the texel truth (M, 3), hit and gap (M S,)."""
+    rays = probe_rays(batch["light"], kind)
+    if rays is None:
+        return None
+    M, S = rays.direction.shape[:2]
+    origin = rays.origin.repeat_interleave(S, 0)
+    direction = rays.direction.reshape(-1, 3)
+    fov = float(batch["fov_x_deg"][0])
+    pixel, hit, gap = trace_views(gb, fov, origin, direction, torch.zeros(M * S, dtype=torch.long))
+    image = batch["im"][0].clamp(min=0)
+    row, col = pixel[:, 0].clamp(min=0), pixel[:, 1].clamp(min=0)
+    local = torch.where(hit.unsqueeze(-1), image[:, row, col].T, torch.zeros(M * S, 3))
+    return {
+        "origin": origin,
+        "direction": direction,
+        "local": local.double(),
+        "truth": rays.radiance.double(),
+        "hit": hit,
+        "gap": gap.double(),
+        "M": M,
+        "S": S,
+    }
+
+
+def network_sources(system, batch: dict, gb: dict, r: dict) -> dict:
+    """The trained LightNet's two sources at the directions of `view_rays`: `local` (its SSRT answer,
+    0 on misses) and `out` (its out-of-view branch on every direction), (M S, 3) float64."""
+    from pipeline.systems.lighting import QUERY_CHUNK
+
+    net = system.net
+    fov = system.fov(batch)
+    ctx = net.encode(batch["im"], gb["depth"], fov, normal=gb["normal"])
+    b = torch.zeros(len(r["direction"]), dtype=torch.long)
+    out, mode = {}, net.mode
+    try:
+        for name, m in (("local", "ssrt_only"), ("out", "out_of_view_only")):
+            net.mode = m
+            gen = system.eval_generator()
+            out[name] = torch.cat(
+                [
+                    net(
+                        ctx,
+                        gb,
+                        fov,
+                        r["origin"][i : i + QUERY_CHUNK],
+                        r["direction"][i : i + QUERY_CHUNK],
+                        b[i : i + QUERY_CHUNK],
+                        gen,
+                    )["radiance"]
+                    for i in range(0, len(b), QUERY_CHUNK)
+                ]
+            ).double()
+    finally:
+        net.mode = mode
+    return out
+
+
+SOURCE_PAIRS = (("image", "truth"), ("network", "truth"), ("image", "network"), ("network", "network"))
+
+
+@torch.no_grad()
+def run(data_dir="outputs/preprocess", views=8, rules=DEFAULT_RULES, light_net=None, material=None) -> dict:
+    """Every rule with perfect sources on ground-truth G-buffers; with `light_net` (an export path) the
+    trained network's sources swapped in one at a time, at its own k and out_threshold, on the G-buffers
+    it was trained on (the frozen MaterialNet's export at `material`, else the ground truth)."""
+    from torch.utils.data import DataLoader, Subset
+
+    from pipeline.data.datasets import ShardDataset, collate_views
+
+    train = ShardDataset(data_dir, "train", lighting=True)
+    if views > len(train):
+        raise ValueError(f"--views {views}: the training split of {data_dir} has {len(train)} views")
+    system = None
+    if light_net is not None:
+        system = network_system(light_net, material)
+        k, t = system.net.k, system.net.out_threshold
+        rules = tuple((f"local {a}, out {b}", k, t) for a, b in SOURCE_PAIRS)
+    tallies = {name: {kind: EnergyTally() for kind in KINDS} for name, _, _ in rules}
+    for batch in tqdm(DataLoader(Subset(train, range(views)), 1, collate_fn=collate_views), total=views, desc="views"):
+        gb = ground_truth_gbuffers(batch) if system is None else system.gbuffers(batch)
+        for kind in KINDS:
+            r = view_rays(batch, gb, kind)
+            if r is None:
+                continue
+            M, S = r["M"], r["S"]
+            sources = {"image": r["local"], "truth": r["truth"].repeat_interleave(S, 0)}
+            if system is not None:
+                net = network_sources(system, batch, gb, r)
+            label_u = confidence(r["hit"], r["gap"], LABEL_K).view(M, S).mean(1)
+            label_hit = r["hit"].view(M, S).float().mean(1) > 0.5
+            for j, (name, k, t) in enumerate(rules):
+                if system is None:
+                    local, out = sources["image"], sources["truth"]
+                else:
+                    a, b = SOURCE_PAIRS[j]
+                    local = net["local"] if a == "network" else sources[a]
+                    out = net["out"] if b == "network" else sources[b]
+                pred = blended(local, out, r["hit"], r["gap"], k, t).view(M, S, 3).mean(1)
+                tallies[name][kind].add(pred[None], r["truth"][None], label_hit[None], label_u[None])
+    rows = []
+    for name, k, t in rules:
+        row = {"rule": name, "k": k, "out_threshold": t}
+        for kind in KINDS:
+            if not tallies[name][kind].sums:
+                continue
+            s = tallies[name][kind].summary()
+            row[kind] = {
+                "nmse": s["nmse"]["lightnet"],
+                "classes": {
+                    c: {
+                        "nmse_contribution": s["classes"][c]["nmse_contribution"],
+                        "ray_fraction": s["classes"][c]["ray_fraction"],
+                        "predicted_over_true_energy": s["classes"][c]["predicted_over_true_energy"],
+                    }
+                    for c in RAY_CLASSES
+                },
+            }
+        rows.append(row)
+    return {
+        "data_dir": str(data_dir),
+        "views": views,
+        "label_k": LABEL_K,
+        "light_net": None if light_net is None else str(light_net),
+        "material": None if material is None else str(material),
+        "rules": rows,
+        "summary": summarise(rows),
+    }
+
+
+def network_system(light_net, material=None):
+    """A `LightingSystem` in eval mode holding the LightNet export at light_net, on the frozen MaterialNet
+    export's G-buffers at `material` (None: the ground-truth G-buffers)."""
+    from pipeline.bench.light_net import system_from_export
+    from pipeline.models.export import LIGHT_FORMAT, read_export
+    from pipeline.models.material_net import load_material_export
+
+    blob = read_export(light_net, LIGHT_FORMAT)
+    if material is None:
+        from pipeline.models.export import build_from_export
+        from pipeline.models.light_net import LightNet
+        from pipeline.systems.lighting import LightingSystem
+
+        render = {"estimator": "importance", "spp": 8, "eval_spp": 16, "seed": 0}
+        system = LightingSystem(light_net=blob["light_net"], material=None, render=render, gbuffers="ground_truth")
+        system.net = build_from_export(light_net, LightNet, blob["light_net"], blob["state_dict"])
+        return system.eval()
+    return system_from_export(light_net, blob, load_material_export(material)[1])
+
+
+def summarise(rows: list[dict]) -> list[dict]:
+    """One line per rule: surface and free nMSE and the uncertain class's share of the surface one."""
+    return [
+        {
+            "rule": r["rule"],
+            "surface nMSE": r.get("surf", {}).get("nmse"),
+            "surface nMSE from uncertain hits": r.get("surf", {})
+            .get("classes", {})
+            .get("uncertain", {})
+            .get("nmse_contribution"),
+            "surface nMSE from hits": r.get("surf", {}).get("classes", {}).get("hit", {}).get("nmse_contribution"),
+            "free nMSE": r.get("free", {}).get("nmse"),
+        }
+        for r in rows
+    ]
+
+
+def plot(report: dict, path) -> None:
+    rows = report["rules"]
+    what = (
+        "perfect sources, ground-truth G-buffers"
+        if report.get("light_net") is None
+        else "the network's sources swapped"
+    )
+    fig = Figure(figsize=(9, 3.6))
+    for j, kind in enumerate(KINDS):
+        ax = fig.add_subplot(1, 2, j + 1)
+        x = np.arange(len(rows))
+        bottom = np.zeros(len(rows))
+        for c in RAY_CLASSES:
+            v = np.array([r.get(kind, {}).get("classes", {}).get(c, {}).get("nmse_contribution", 0.0) for r in rows])
+            ax.bar(x, v, 0.6, bottom=bottom, label=c)
+            bottom += v
+        ax.axhline(0.10, color="k", lw=0.8, ls="--", label="0.10")
+        ax.set_xticks(x, [r["rule"] for r in rows], rotation=30, ha="right", fontsize=7)
+        ax.set_ylabel(f"{kind} nMSE (class contributions)")
+        ax.set_title(f"{kind} probes", fontsize=9)
+        ax.legend(fontsize=7)
+    fig.suptitle(f"LightNet's blend with {what}, {report['views']} training views", fontsize=9)
+    fig.tight_layout()
+    fig.savefig(path, dpi=120)
+
+
+def main(argv=None) -> None:
+    p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("--data-dir", default="outputs/preprocess")
+    p.add_argument("--views", type=int, default=8)
+    p.add_argument("--rule", action="append", default=None, help="NAME:K:T (repeatable; default: the built-in set)")
+    p.add_argument("--light-net", default=None, help="a LightNet export: swap its sources in (rules ignored)")
+    p.add_argument("--material", default=None, help="the MaterialNet export whose G-buffers the LightNet trained on")
+    p.add_argument("--name", default="blend_floor")
+    add_threads_option(p)
+    a = p.parse_args(argv)
+    apply_threads(a.threads)
+    rules = tuple(parse_rule(r) for r in a.rule) if a.rule else DEFAULT_RULES
+    print(publish(a.name, run(a.data_dir, a.views, rules, a.light_net, a.material), plot))
+
+
+if __name__ == "__main__":
+    main()

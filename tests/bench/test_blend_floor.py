@@ -1,0 +1,80 @@
+"""bench.blend_floor: its blend is LightNet's rule, its network sources recombine to LightNet's own answer,
+and on the micro data the class contributions add up to each rule's error."""
+
+import math
+
+import pytest
+import torch
+
+from pipeline.bench import blend_floor as bf
+
+
+def test_blend_rule_on_known_rays():
+    local = torch.tensor([[1.0, 1, 1], [2.0, 2, 2], [3.0, 3, 3], [4.0, 4, 4]], dtype=torch.float64)
+    out = torch.full((4, 3), 10.0, dtype=torch.float64)
+    hit = torch.tensor([False, True, True, True])
+    gap = torch.tensor([0.0, 0.0, 0.05, 1.0], dtype=torch.float64)
+    u = torch.tanh(10 * gap)
+    # paper (t = 0): a miss takes the out-of-view source, a confident hit (gap 0) the local one, the rest mix
+    got = bf.blended(local, out, hit, gap, 10.0, 0.0)
+    assert torch.equal(got[0], out[0]) and torch.equal(got[1], local[1])
+    assert torch.allclose(got[2], (1 - u[2]) * local[2] + u[2] * out[2])
+    # t = 0.9: the uncertain hit (u = 0.46) keeps its local answer, the far one (u ~ 1) mixes
+    got = bf.blended(local, out, hit, gap, 10.0, 0.9)
+    assert torch.equal(got[2], local[2]) and torch.allclose(got[3], (1 - u[3]) * local[3] + u[3] * out[3])
+    assert torch.equal(got[0], out[0])
+    # k = 0: every hit answered locally
+    assert torch.equal(bf.blended(local, out, hit, gap, 0.0, 0.0)[1:], local[1:])
+
+
+def test_rules_are_parsed_or_refused():
+    assert bf.parse_rule("sharp:30:0.5") == ("sharp", 30.0, 0.5)
+    for bad in ("sharp", "sharp:x:0", "sharp:10:2", "sharp:-1:0"):
+        with pytest.raises(SystemExit, match="--rule"):
+            bf.parse_rule(bad)
+
+
+def test_network_sources_recombine_to_lightnet(micro_shards, micro_exports):
+    """The trained network's two sources, blended by the bench's rule, give the network's own mixed answer
+    (out_threshold 0: both ways query every ray, so the volume's random draws are the same)."""
+    from torch.utils.data import DataLoader, Subset
+
+    from pipeline.data.datasets import ShardDataset, collate_views
+
+    system = bf.network_system(micro_exports / "light.pt")
+    system.net.out_threshold = 0.0
+    train = ShardDataset(str(micro_shards), "train", lighting=True)
+    batch = next(iter(DataLoader(Subset(train, [0]), 1, collate_fn=collate_views)))
+    gb = system.gbuffers(batch)
+    r = bf.view_rays(batch, gb, "surf")
+    assert r is not None, "the micro training view has surface probes"
+    sources = bf.network_sources(system, batch, gb, r)
+    assert system.net.mode == "mixed"  # restored
+    with torch.no_grad():
+        ctx = system.net.encode(batch["im"], gb["depth"], system.fov(batch), normal=gb["normal"])
+        b = torch.zeros(len(r["direction"]), dtype=torch.long)
+        own = system.net(ctx, gb, system.fov(batch), r["origin"], r["direction"], b, system.eval_generator())
+    mine = bf.blended(sources["local"], sources["out"], r["hit"], r["gap"], system.net.k, 0.0)
+    assert torch.allclose(mine, own["radiance"].double(), rtol=1e-5, atol=1e-6)
+
+
+def test_runs_on_the_micro_data(micro_shards, micro_exports, tmp_path):
+    report = bf.run(str(micro_shards), views=1)
+    assert [r["rule"] for r in report["rules"]] == [name for name, _, _ in bf.DEFAULT_RULES]
+    for row in report["rules"]:
+        for kind in bf.KINDS:
+            if kind not in row:
+                continue
+            parts = sum(c["nmse_contribution"] for c in row[kind]["classes"].values())
+            assert parts == pytest.approx(row[kind]["nmse"], rel=1e-9) and math.isfinite(parts)
+    # with the true light on every out-of-view direction, misses are exact wherever no direction hit
+    assert report["summary"][0]["surface nMSE"] is not None
+    net = bf.run(str(micro_shards), views=1, light_net=micro_exports / "light.pt")
+    assert [r["rule"] for r in net["rules"]] == [f"local {a}, out {b}" for a, b in bf.SOURCE_PAIRS]
+    bf.plot(net, tmp_path / "b.png")
+    assert (tmp_path / "b.png").stat().st_size > 5_000
+
+
+def test_too_many_views_are_refused(micro_shards):
+    with pytest.raises(ValueError, match="--views 10000"):
+        bf.run(str(micro_shards), views=10000)
