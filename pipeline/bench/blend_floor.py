@@ -67,10 +67,12 @@ def blended(local: torch.Tensor, out: torch.Tensor, hit: torch.Tensor, gap: torc
 
 
 def ground_truth_gbuffers(batch: dict) -> dict:
-    """depth (1, H, W) (0 where masked) and normal (1, 3, H, W) of a collated one-view batch."""
+    """The ground-truth G-buffers of a collated one-view batch as LightNet reads them: depth (1, H, W)
+    (0 where masked), normal and albedo (1, 3, H, W), material (1, 2, H, W)."""
     depth = batch["depth"][:, 0]
     keep = batch["mask"][:, 0].bool() & torch.isfinite(depth)
-    return {"depth": torch.where(keep, depth, torch.zeros_like(depth)), "normal": batch["normal"]}
+    gb = {k: batch[k] for k in ("normal", "albedo", "material")}
+    return {**gb, "depth": torch.where(keep, depth, torch.zeros_like(depth))}
 
 
 def view_rays(batch: dict, gb: dict, kind: str):

@@ -1,0 +1,245 @@
+"""`python -m pipeline.bench.visible_light`: how much of the light out of view the photo itself holds.
+
+LightNet's out-of-view branch answers the rays SSRT does not land on a pixel (misses, and hits behind a
+depth gap). Held out, the trained branch scores about what one constant per probe scores. This bench asks
+what an answer built from what the camera saw could score, with no learning and the best geometry:
+the photo's pixels splatted onto the room's box (`ops.roombox.observed_textures`: walls, floor and
+ceiling by their depth, lamps and windows along their camera rays), each out-of-view direction given the
+observed radiance of the texel it leaves the box through, and the texels the camera did not see given a
+fill. Every rule blends as tiny's LightNet does (k 10, `out_threshold` 0.9) with the image's own pixel
+as the local source (`bench.blend_floor`), on ground-truth G-buffers, so the rows differ only in the
+out-of-view source:
+- `truth`: each texel's true radiance (the floor of the blend);
+- `probe mean`: every out-of-view direction at its probe's true mean radiance (an oracle of energy
+  without structure: what the trained branch nearly scores);
+- `seen, <box>, unseen at the image mean`: the observed texels, the rest at the photo's mean radiance
+  (nothing but the photo);
+- `seen, <box>, unseen at the probe mean`: the observed texels, the rest at the probe's true mean (the
+  photo's structure with an oracle of the unseen energy);
+with `<box>` the room's true box (from the room file) or the one `ops.roombox` estimates from the
+ground-truth normals and depth; with `--light-net` the trained network's own out-of-view branch too.
+A ladder of oracles says how finely the light must be placed on the box: `true box, N x N per face`
+gives each direction the mean true radiance of all the view's probe directions (both kinds) that leave
+the true box through the same texel of an N x N grid per face, N = 1 (each face's mean) up to 32 (fitted
+to the probes themselves: an in-sample oracle, the representation's reach, not a prediction).
+Scores: the pooled normalised MSE per probe kind and each ray class's part (`light_energy.EnergyTally`).
+Writes reports/bench/visible_light.json (or `--name`) and a PNG.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+from pathlib import Path
+
+import numpy as np
+import torch
+from matplotlib.figure import Figure
+from tqdm import tqdm
+
+from pipeline.bench.blend_floor import (
+    KINDS,
+    LABEL_K,
+    blended,
+    ground_truth_gbuffers,
+    network_sources,
+    network_system,
+    view_rays,
+)
+from pipeline.bench.common import add_threads_option, apply_threads, publish
+from pipeline.bench.light_energy import RAY_CLASSES, EnergyTally
+from pipeline.bench.roombox_floor import estimated_box, true_box
+from pipeline.models.light_net import confidence
+from pipeline.ops.roombox import exit_face, observed_textures
+
+K, THRESHOLD = 10.0, 0.9  # tiny's rule (conf/model/light_net/small.yaml, conf/profile/tiny.yaml)
+TEXTURE_SIZE = 32  # texels per face side, as the roombox branch's (conf/model/light_net/small.yaml)
+BOXES = ("true box", "estimated box")
+LADDER = (1, 2, 4, 8, 32)  # texels per face side of the oracle ladder
+
+
+def box_texels(box, origin: torch.Tensor, direction: torch.Tensor, size: int) -> torch.Tensor:
+    """Flat texel index (N,) in [0, 6 size^2) where directions (N, 3) from origins (N, 3), view space,
+    leave `box` (rotation (3, 3), lo, hi (3,)) on a size x size grid per face (nearest texel)."""
+    rot, lo, hi = (t.double() for t in box)
+    q, d = origin.double() @ rot, direction.double() @ rot
+    N = len(q)
+    face, st, _ = exit_face(q, d, lo.expand(N, 3), hi.expand(N, 3))
+    texel = ((st + 1) * (size / 2)).long().clamp(0, size - 1)
+    return face * size * size + texel[:, 1] * size + texel[:, 0]
+
+
+def texel_means(index: torch.Tensor, radiance: torch.Tensor, cells: int) -> torch.Tensor:
+    """(cells, 3) mean of radiance (N, 3) over the directions in each cell of index (N,) (0 where none)."""
+    total = radiance.new_zeros(cells, 3).index_add_(0, index, radiance)
+    count = radiance.new_zeros(cells).index_add_(0, index, torch.ones_like(radiance[:, 0]))
+    return total / count.clamp(min=1)[:, None]
+
+
+def seen_lookup(batch: dict, gb: dict, box, origin: torch.Tensor, direction: torch.Tensor, size: int):
+    """Where directions (N, 3) from origins (N, 3), view space, leave `box` (rotation (3, 3), lo, hi (3,)):
+    the observed radiance there (N, 3) and whether the camera saw that texel (N,) bool (nearest texel)."""
+    rot, lo, hi = (t.double() for t in box)
+    image = batch["im"].double().clamp(min=0)
+    obs, count = observed_textures(
+        image,
+        gb["depth"].double(),
+        float(batch["fov_x_deg"][0]),
+        rot[None],
+        lo[None],
+        hi[None],
+        size,
+        gb["normal"].double(),
+    )
+    flat = box_texels(box, origin, direction, size)
+    values = obs[0].permute(0, 2, 3, 1).reshape(-1, 3)[flat]
+    seen = count[0].reshape(-1)[flat] > 0
+    return values, seen
+
+
+def out_sources(batch: dict, gb: dict, r: dict, kind: str, boxes: dict, ladder: dict) -> dict:
+    """Every out-of-view source of the module's rows at the directions of `view_rays`, (M S, 3) float64;
+    `ladder`: per grid size, the view's texel means on the true box (`texel_means`)."""
+    M, S = r["M"], r["S"]
+    P, T = batch["light"][0].kind(kind).texels()[1].shape[:2]
+    if P * T != M:
+        raise RuntimeError(f"{kind} probes: {P} x {T} texels against {M} rays (probe_rays' order changed?)")
+    truth = r["truth"].repeat_interleave(S, 0)
+    probe_mean = r["truth"].view(P, T, 3).mean(1).repeat_interleave(T * S, 0)
+    image_mean = batch["im"][0].double().clamp(min=0).mean((1, 2)).expand_as(truth)
+    out = {"truth": truth, "probe mean": probe_mean}
+    for name, box in boxes.items():
+        values, seen = seen_lookup(batch, gb, box, r["origin"], r["direction"], TEXTURE_SIZE)
+        out[f"seen, {name}, unseen at the image mean"] = torch.where(seen[:, None], values, image_mean)
+        out[f"seen, {name}, unseen at the probe mean"] = torch.where(seen[:, None], values, probe_mean)
+        out[f"{name}: share of out-of-view directions seen"] = seen
+    for size, means in ladder.items():
+        out[f"true box, {size} x {size} per face (oracle)"] = means[
+            box_texels(boxes["true box"], r["origin"], r["direction"], size)
+        ]
+    return out
+
+
+@torch.no_grad()
+def run(data_dir="outputs/preprocess", split="test", views=None, light_net=None) -> dict:
+    from torch.utils.data import DataLoader, Subset
+
+    from pipeline.data.datasets import ShardDataset, collate_views
+
+    manifest = json.loads((Path(data_dir) / "manifest.json").read_text())
+    source_root = Path(manifest["source_root"])
+    if not source_root.is_dir():
+        raise FileNotFoundError(f"{data_dir}/manifest.json: source_root {source_root} (the room files) is missing")
+    data = ShardDataset(data_dir, split, lighting=True)
+    count = len(data) if views is None else views
+    if not 0 < count <= len(data):
+        raise ValueError(f"--views {views}: the {split} split of {data_dir} has {len(data)} views")
+    system = None if light_net is None else network_system(light_net)
+    tallies: dict[str, dict[str, EnergyTally]] = {}
+    seen_counts = {name: [0, 0] for name in BOXES}
+    loader = DataLoader(Subset(data, range(count)), 1, collate_fn=collate_views)
+    for batch in tqdm(loader, total=count, desc=f"views ({split})"):
+        item_id = batch["id"][0]
+        gb = ground_truth_gbuffers(batch)
+        normal_item = {"depth": batch["depth"][0], "mask": batch["mask"][0], "normal": batch["normal"][0]}
+        normal_item["fov_x_deg"] = float(batch["fov_x_deg"][0])
+        boxes = {"true box": true_box(source_root, item_id), "estimated box": estimated_box(normal_item)}
+        traced = {kind: view_rays(batch, gb, kind) for kind in KINDS}
+        traced = {kind: r for kind, r in traced.items() if r is not None}
+        ladder = {}
+        for size in LADDER:  # every probe direction of the view, both kinds, binned on the true box
+            index = torch.cat(
+                [box_texels(boxes["true box"], r["origin"], r["direction"], size) for r in traced.values()]
+            )
+            radiance = torch.cat([r["truth"].repeat_interleave(r["S"], 0) for r in traced.values()])
+            ladder[size] = texel_means(index, radiance, 6 * size * size)
+        for kind, r in traced.items():
+            sources = out_sources(batch, gb, r, kind, boxes, ladder)
+            if system is not None:
+                sources["network"] = network_sources(system, batch, gb, r)["out"]
+            miss = (~r["hit"]) | (confidence(r["hit"], r["gap"], K) >= THRESHOLD)
+            for name in BOXES:
+                seen = sources.pop(f"{name}: share of out-of-view directions seen")
+                seen_counts[name][0] += int((seen & miss).sum())
+                seen_counts[name][1] += int(miss.sum())
+            label_u = confidence(r["hit"], r["gap"], LABEL_K).view(r["M"], r["S"]).mean(1)
+            label_hit = r["hit"].view(r["M"], r["S"]).float().mean(1) > 0.5
+            for name, out in sources.items():
+                pred = blended(r["local"], out, r["hit"], r["gap"], K, THRESHOLD).view(r["M"], r["S"], 3).mean(1)
+                tally = tallies.setdefault(name, {k: EnergyTally() for k in KINDS})
+                tally[kind].add(pred[None], r["truth"][None], label_hit[None], label_u[None])
+    rows = []
+    for name, by_kind in tallies.items():
+        row = {"source": name}
+        for kind, t in by_kind.items():
+            if t.sums:
+                s = t.summary()
+                row[kind] = {
+                    "nmse": s["nmse"]["lightnet"],
+                    "classes": {c: s["classes"][c]["nmse_contribution"] for c in RAY_CLASSES},
+                }
+        rows.append(row)
+    seen_share = {name: c[0] / max(c[1], 1) for name, c in seen_counts.items()}
+    return {
+        "data_dir": str(data_dir),
+        "split": split,
+        "views": count,
+        "rule": {"k": K, "out_threshold": THRESHOLD, "local": "the image's pixel at the SSRT hit"},
+        "texture_size": TEXTURE_SIZE,
+        "light_net": None if light_net is None else str(light_net),
+        "out_of_view_directions_seen": seen_share,
+        "rows": rows,
+        "summary": [
+            {
+                "out-of-view source": r["source"],
+                "surface nMSE": r.get("surf", {}).get("nmse"),
+                "surface nMSE from misses": r.get("surf", {}).get("classes", {}).get("miss"),
+                "free nMSE": r.get("free", {}).get("nmse"),
+            }
+            for r in rows
+        ],
+    }
+
+
+def plot(report: dict, path) -> None:
+    rows = report["rows"]
+    fig = Figure(figsize=(10, 4.2))
+    for j, kind in enumerate(KINDS):
+        ax = fig.add_subplot(1, 2, j + 1)
+        y = np.arange(len(rows))
+        left = np.zeros(len(rows))
+        for c in RAY_CLASSES:
+            v = np.array([r.get(kind, {}).get("classes", {}).get(c, 0.0) for r in rows])
+            ax.barh(y, v, 0.6, left=left, label=c)
+            left += v
+        ax.set_yticks(y, [r["source"] for r in rows], fontsize=7)
+        ax.invert_yaxis()
+        ax.set_xlabel(f"{kind} nMSE (class parts)")
+        ax.set_title(f"{kind} probes", fontsize=9)
+        if j:
+            ax.set_yticks(y, [""] * len(rows))
+        ax.legend(fontsize=7)
+    fig.suptitle(
+        f"out-of-view light from what the photo shows: {report['views']} {report['split']} views, "
+        f"ground-truth G-buffers, the local source the image's pixel",
+        fontsize=9,
+    )
+    fig.tight_layout()
+    fig.savefig(path, dpi=120)
+
+
+def main(argv=None) -> None:
+    p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("--data-dir", default="outputs/preprocess")
+    p.add_argument("--split", default="test")
+    p.add_argument("--views", type=int, default=None, help="the first N views of the split (default: all)")
+    p.add_argument("--light-net", default=None, help="a LightNet export: its out-of-view branch as a row too")
+    p.add_argument("--name", default="visible_light")
+    add_threads_option(p)
+    a = p.parse_args(argv)
+    apply_threads(a.threads)
+    print(publish(a.name, run(a.data_dir, a.split, a.views, a.light_net), plot))
+
+
+if __name__ == "__main__":
+    main()
