@@ -4,7 +4,8 @@ Before a network is tuned to generalise it must fit the few rooms it is trained 
 blocks it is in the model, the loss or the optimiser, not in the data. For each room count in `--rooms`
 (the first n views of the training split) and each variant (`--variant NAME:override;override`, Hydra
 overrides of `train_lighting`), this trains LightNet with the stage's training step on those rooms alone
-(ground-truth G-buffers, so MaterialNet's errors do not count; a constant learning rate, no validation)
+(ground-truth G-buffers, so MaterialNet's errors do not count; a constant learning rate unless the
+variant sets `+bench.schedule=cosine`, the stage's cosine decay to zero over the run's steps; no validation)
 until the training loss plateaus: its mean over the last `--window` steps improved by less than
 `--min-gain` (relative) over the `--window` steps before (checked at evaluations; a negative value
 never stops), or `--max-steps`.
@@ -337,10 +338,22 @@ def plateaued(losses: list[float], window: int, min_gain: float) -> bool:
 
 
 def train_to_plateau(
-    system, optimizer, loader, plain, max_steps, eval_every, window, min_gain, label, score=evaluate, clip=0.0
+    system,
+    optimizer,
+    loader,
+    plain,
+    max_steps,
+    eval_every,
+    window,
+    min_gain,
+    label,
+    score=evaluate,
+    clip=0.0,
+    scheduler=None,
 ) -> dict:
     """Steps of the stage's optimiser (`optimiser_step`, gradients clipped at `clip` as the stage clips them)
-    until `max_steps` or a plateau of the loss; `score` on `plain` every `eval_every` steps and at the end."""
+    until `max_steps` or a plateau of the loss; `score` on `plain` every `eval_every` steps and at the end.
+    `scheduler` (None: a constant rate) is stepped after every optimiser step."""
     losses, curve = [], []
     step, t0, stop = 0, time.perf_counter(), "max_steps"
     system.train()
@@ -350,6 +363,8 @@ def train_to_plateau(
             if step % eval_every == 0:
                 curve.append({"step": step, "seconds": time.perf_counter() - t0, **score(system, plain)})
             losses.append(optimiser_step(system, optimizer, batch, step, clip))
+            if scheduler is not None:
+                scheduler.step()
             step += 1
             bar.update(1)
             if step % eval_every == 0 and plateaued(losses, window, min_gain):
@@ -362,6 +377,20 @@ def train_to_plateau(
     bar.close()
     curve.append({"step": step, "seconds": time.perf_counter() - t0, **score(system, plain)})
     return {"steps": step, "stopped_by": stop, "seconds": time.perf_counter() - t0, "loss": losses, "curve": curve}
+
+
+SCHEDULES = ("constant", "cosine")
+
+
+def step_schedule(optimizer, kind, max_steps: int):
+    """The learning-rate schedule of a run (`+bench.schedule`): None for `constant` (or unset); for `cosine`
+    the stage's cosine decay to zero (conf/optim/adamw.yaml, there over its epochs) over the run's
+    `max_steps`, every parameter group from its own rate."""
+    if kind in (None, "constant"):
+        return None
+    if kind not in SCHEDULES:
+        raise ValueError(f"+bench.schedule={kind!r}: choose one of {SCHEDULES}")
+    return torch.optim.lr_scheduler.CosineAnnealingLR(optimizer, T_max=max_steps)
 
 
 def source_root(data_dir) -> Path:
@@ -417,9 +446,11 @@ def run(
                 loader, plain = rooms_batches(data_dir, n, int(cfg.batch_size), lighting=False)
                 score = evaluate_material
             clip = gradient_clip(cfg)  # the stage's: a bench without it measures another optimiser
+            scheduler = step_schedule(optimizer, OmegaConf.select(cfg, "bench.schedule"), max_steps)
+            extra["schedule"] = OmegaConf.select(cfg, "bench.schedule") or "constant"
             label = f"{name}, {n} rooms"
             row = train_to_plateau(
-                system, optimizer, loader, plain, max_steps, eval_every, window, min_gain, label, score, clip
+                system, optimizer, loader, plain, max_steps, eval_every, window, min_gain, label, score, clip, scheduler
             )
             if network == "light":
                 row["walls"] = wall_agreement(system, plain, source_root(data_dir))

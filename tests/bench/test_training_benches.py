@@ -4,6 +4,7 @@ rules (plateau, variants) do what they say."""
 import math
 
 import pytest
+import torch
 
 from pipeline.bench import overfit, train_step
 
@@ -29,10 +30,36 @@ def test_variant_parsing():
         overfit.parse_variant(":a=1")
 
 
+def test_step_schedule_decays_every_group_to_zero_over_the_run():
+    w = torch.nn.Parameter(torch.zeros(1))
+    table = torch.nn.Parameter(torch.zeros(1))
+    opt = torch.optim.AdamW([{"params": [w]}, {"params": [table], "lr": 0.05}], lr=1e-3)
+    assert overfit.step_schedule(opt, None, 10) is None and overfit.step_schedule(opt, "constant", 10) is None
+    sched = overfit.step_schedule(opt, "cosine", 10)
+    rates = []
+    for _ in range(10):
+        opt.step()
+        sched.step()
+        rates.append([g["lr"] for g in opt.param_groups])
+    assert rates[4] == pytest.approx([0.5e-3, 0.025])  # half way: half of each group's own rate
+    assert rates[-1] == pytest.approx([0.0, 0.0], abs=1e-12)
+    with pytest.raises(ValueError, match="bench.schedule='linear'"):
+        overfit.step_schedule(opt, "linear", 10)
+
+
 def test_overfit_bench_runs_small(micro_shards, tmp_path):
-    report = overfit.run(rooms=(2,), data_dir=str(micro_shards), max_steps=3, eval_every=2, window=1, min_gain=-1)
+    report = overfit.run(
+        rooms=(2,),
+        variants=(("cosine", ["+bench.schedule=cosine"]),),
+        data_dir=str(micro_shards),
+        max_steps=3,
+        eval_every=2,
+        window=1,
+        min_gain=-1,
+    )
     (run,) = report["runs"]
     assert run["steps"] == 3 and run["stopped_by"] == "max_steps" and len(run["loss"]) == 3
+    assert run["schedule"] == "cosine"
     assert run["clip"] == 1.0  # the stage's optimiser: conf/trainer/default.yaml's gradient clip
     assert [c["step"] for c in run["curve"]] == [0, 2, 3]
     for c in run["curve"]:
