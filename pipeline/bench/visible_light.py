@@ -218,13 +218,14 @@ def plot(report: dict, path) -> None:
         ax.set_title(f"{kind} probes", fontsize=9)
         if j:
             ax.set_yticks(y, [""] * len(rows))
-        ax.legend(fontsize=7)
     fig.suptitle(
         f"out-of-view light from what the photo shows: {report['views']} {report['split']} views, "
         f"ground-truth G-buffers, the local source the image's pixel",
         fontsize=9,
     )
-    fig.tight_layout()
+    handles, labels = fig.axes[0].get_legend_handles_labels()
+    fig.legend(handles, labels, loc="lower center", ncol=len(RAY_CLASSES), fontsize=8)
+    fig.tight_layout(rect=(0, 0.06, 1, 1))
     fig.savefig(path, dpi=120)
 
 
