@@ -526,6 +526,12 @@ def bench_block(name: str, data: dict, profile: str) -> list[str]:
         head = {"each run's last evaluation, on its training rooms": [overfit_row(r) for r in data.get("runs", [])]}
     elif head is None:
         head = {k: v for k, v in data.items() if k in BENCH_HEADLINES.get(name, ())}
+    if isinstance(head, list):  # a summary that is a list of rows: one table
+        head = {"each row": head}
+    if not isinstance(head, dict):
+        raise ValueError(
+            f"reports/bench/{name}.json: its summary is a {type(head).__name__}; write a mapping or a list of rows"
+        )
     scalars = [[k, num(v)] for k, v in head.items() if isinstance(v, int | float) and not isinstance(v, bool)]
     if scalars:
         lines += ["", *md_table(["measured", "value"], scalars)]

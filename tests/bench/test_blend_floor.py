@@ -78,3 +78,13 @@ def test_runs_on_the_micro_data(micro_shards, micro_exports, tmp_path):
 def test_too_many_views_are_refused(micro_shards):
     with pytest.raises(ValueError, match="--views 10000"):
         bf.run(str(micro_shards), views=10000)
+
+
+def test_the_results_page_renders_a_list_summary_and_refuses_a_scalar():
+    from pipeline.tracking.results_page import bench_block
+
+    rows = [{"rule": "k 10, t 0 (paper)", "surface nMSE": 0.0068}, {"rule": "hits local only", "surface nMSE": 0.143}]
+    block = "\n".join(bench_block("blend_floor", {"summary": rows}, "tiny"))
+    assert "| k 10, t 0 (paper) | 0.0068 |" in block and "| hits local only | 0.143 |" in block
+    with pytest.raises(ValueError, match="reports/bench/blend_floor.json: its summary is a float"):
+        bench_block("blend_floor", {"summary": 0.5}, "tiny")
