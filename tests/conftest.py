@@ -195,6 +195,17 @@ def micro_shards(micro_stage_paths, tmp_path_factory, worker_id) -> Path:
     )
 
 
+@pytest.fixture
+def micro_shards_without_rooms(micro_shards, tmp_path) -> Path:
+    """A copy of the micro shards whose manifest's `source_root` (the room files) is gone."""
+    data = tmp_path / "shards"
+    shutil.copytree(micro_shards, data)
+    manifest = json.loads((data / "manifest.json").read_text())
+    manifest["source_root"] = str(tmp_path / "gone")
+    (data / "manifest.json").write_text(json.dumps(manifest))
+    return data
+
+
 @pytest.fixture(scope="session")
 def micro_ood_shards(micro_stage_paths, tmp_path_factory, worker_id) -> Path:
     """Read-only preprocess shards of the micro run's out-of-distribution set (test split only)."""
