@@ -90,6 +90,7 @@ def view_rays(batch: dict, gb: dict, kind: str):
     row, col = pixel[:, 0].clamp(min=0), pixel[:, 1].clamp(min=0)
     local = torch.where(hit.unsqueeze(-1), image[:, row, col].T, torch.zeros(M * S, 3))
     return {
+        "pixel": pixel,
         "origin": origin,
         "direction": direction,
         "local": local.double(),
@@ -99,6 +100,52 @@ def view_rays(batch: dict, gb: dict, kind: str):
         "M": M,
         "S": S,
     }
+
+
+CONTINUE_STEP_M = 0.025  # metres between the points a continued ray is tested at behind an occluder
+CONTINUE_REACH_M = 8.0  # how far behind the first crossing a continued ray looks for free space
+
+
+def continued_local(batch: dict, gb: dict, r: dict, k: float) -> torch.Tensor:
+    """The image's radiance where each uncertain hit (u = tanh(k gap) >= 0.5: the ray slipped behind
+    what the pixel shows) lands when the march goes on behind the occluder, (M S, 3) float64, NaN where
+    it does not land on a confident pixel (it leaves the image or finds no free space within reach).
+
+    From the point of the ray level with the hit pixel's surface, the ray is walked in CONTINUE_STEP_M
+    steps to the first point in front of the depth map again (or off it), and traced from there with the
+    same hit rule; its radiance is taken only where that second hit is confident (u < 0.5). This is what
+    a march with a thickness for what it passes behind would answer, given the image's own pixels."""
+    from pipeline.ops.camera import backproject, project
+
+    out = torch.full_like(r["local"], float("nan"))
+    u = confidence(r["hit"], r["gap"], k)
+    sel = torch.nonzero(r["hit"] & (u >= 0.5)).squeeze(-1)
+    if not sel.numel():
+        return out
+    depth = gb["depth"][0]
+    H, W = depth.shape
+    fov = float(batch["fov_x_deg"][0])
+    pixel = r["pixel"][sel]
+    points = backproject(depth[None], fov)[0]  # (H, W, 3)
+    o, d = r["origin"][sel].to(points.dtype), r["direction"][sel].to(points.dtype)
+    t0 = ((points[pixel[:, 0], pixel[:, 1]] - o) * d).sum(-1)  # the ray level with the hit's surface
+    steps = torch.arange(1, int(CONTINUE_REACH_M / CONTINUE_STEP_M) + 1, dtype=o.dtype) * CONTINUE_STEP_M
+    t = t0[:, None] + steps[None]  # (n, K)
+    xy, z = project(o[:, None] + t[..., None] * d[:, None], fov, H, W)
+    col, row = xy[..., 0].floor().long(), xy[..., 1].floor().long()
+    inside = (col >= 0) & (col < W) & (row >= 0) & (row < H) & (z > 0)
+    surface = depth[row.clamp(0, H - 1), col.clamp(0, W - 1)]
+    free = ~inside | (surface <= 0) | ~torch.isfinite(surface) | (z < surface)
+    found = free.any(1)
+    first = free.float().argmax(1)
+    start = o + (t.gather(1, first[:, None])[:, 0])[:, None] * d
+    ok = torch.nonzero(found).squeeze(-1)
+    pixel2, hit2, gap2 = trace_views(gb, fov, start[ok], d[ok], torch.zeros(len(ok), dtype=torch.long))
+    good = hit2 & (confidence(hit2, gap2.to(o.dtype), k) < 0.5)
+    image = batch["im"][0].clamp(min=0)
+    rows = sel[ok[good]]
+    out[rows] = image[:, pixel2[good, 0], pixel2[good, 1]].T.double()
+    return out
 
 
 def network_sources(system, batch: dict, gb: dict, r: dict) -> dict:
@@ -138,10 +185,16 @@ SOURCE_PAIRS = (("image", "truth"), ("network", "truth"), ("image", "network"), 
 
 
 @torch.no_grad()
-def run(data_dir="outputs/preprocess", views=8, rules=DEFAULT_RULES, light_net=None, material=None) -> dict:
+def run(
+    data_dir="outputs/preprocess", views=8, rules=DEFAULT_RULES, light_net=None, material=None, continue_behind=False
+) -> dict:
     """Every rule with perfect sources on ground-truth G-buffers; with `light_net` (an export path) the
     trained network's sources swapped in one at a time, at its own k and out_threshold, on the G-buffers
-    it was trained on (the frozen MaterialNet's export at `material`, else the ground truth)."""
+    it was trained on (the frozen MaterialNet's export at `material`, else the ground truth).
+    continue_behind: rows where the uncertain hits that land on a confident pixel when marched on behind
+    their occluder take that pixel's radiance (`continued_local`), beside the same rows without: on
+    ground-truth G-buffers with one constant per probe (its true mean) as the out-of-view source (about
+    what a trained branch scores held out), with `light_net` with the network's own sources."""
     from torch.utils.data import DataLoader, Subset
 
     from pipeline.data.datasets import ShardDataset, collate_views
@@ -150,11 +203,23 @@ def run(data_dir="outputs/preprocess", views=8, rules=DEFAULT_RULES, light_net=N
     if views > len(train):
         raise ValueError(f"--views {views}: the training split of {data_dir} has {len(train)} views")
     system = None
-    if light_net is not None:
+    # each row: name, k, out_threshold, local source, out-of-view source, uncertain hits continued
+    if light_net is None:
+        table = [(name, k, t, "image", "truth", False) for name, k, t in rules]
+        if continue_behind:
+            table += [
+                ("k 10, t 0.9, out probe mean", 10.0, 0.9, "image", "probe mean", False),
+                ("k 10, t 0.9, out probe mean, uncertain hits continued", 10.0, 0.9, "image", "probe mean", True),
+            ]
+    else:
         system = network_system(light_net, material)
         k, t = system.net.k, system.net.out_threshold
-        rules = tuple((f"local {a}, out {b}", k, t) for a, b in SOURCE_PAIRS)
-    tallies = {name: {kind: EnergyTally() for kind in KINDS} for name, _, _ in rules}
+        table = [(f"local {a}, out {b}", k, t, a, b, False) for a, b in SOURCE_PAIRS]
+        if continue_behind:
+            table.append(("local network, out network, uncertain hits continued", k, t, "network", "network", True))
+    rules = [(name, k, t) for name, k, t, *_ in table]
+    tallies = {name: {kind: EnergyTally() for kind in KINDS} for name, *_ in table}
+    continued_share = [0, 0]
     for batch in tqdm(DataLoader(Subset(train, range(views)), 1, collate_fn=collate_views), total=views, desc="views"):
         gb = ground_truth_gbuffers(batch) if system is None else system.gbuffers(batch)
         for kind in KINDS:
@@ -162,19 +227,25 @@ def run(data_dir="outputs/preprocess", views=8, rules=DEFAULT_RULES, light_net=N
             if r is None:
                 continue
             M, S = r["M"], r["S"]
-            sources = {"image": r["local"], "truth": r["truth"].repeat_interleave(S, 0)}
+            P = len(batch["light"][0].kind(kind).texels()[1])
+            local = {"image": r["local"]}
+            out = {"truth": r["truth"].repeat_interleave(S, 0)}
+            out["probe mean"] = r["truth"].view(P, M // P, 3).mean(1).repeat_interleave(M // P * S, 0)
             if system is not None:
                 net = network_sources(system, batch, gb, r)
+                local["network"], out["network"] = net["local"], net["out"]
+            continued = continued_local(batch, gb, r, LABEL_K) if continue_behind else None
+            if continued is not None:
+                uncertain = r["hit"] & (confidence(r["hit"], r["gap"], LABEL_K) >= 0.5)
+                continued_share[0] += int(torch.isfinite(continued[:, 0]).sum())
+                continued_share[1] += int(uncertain.sum())
             label_u = confidence(r["hit"], r["gap"], LABEL_K).view(M, S).mean(1)
             label_hit = r["hit"].view(M, S).float().mean(1) > 0.5
-            for j, (name, k, t) in enumerate(rules):
-                if system is None:
-                    local, out = sources["image"], sources["truth"]
-                else:
-                    a, b = SOURCE_PAIRS[j]
-                    local = net["local"] if a == "network" else sources[a]
-                    out = net["out"] if b == "network" else sources[b]
-                pred = blended(local, out, r["hit"], r["gap"], k, t).view(M, S, 3).mean(1)
+            for name, k, t, a, b, cont in table:
+                pred = blended(local[a], out[b], r["hit"], r["gap"], k, t)
+                if cont:
+                    pred = torch.where(torch.isfinite(continued[:, :1]), continued, pred)
+                pred = pred.view(M, S, 3).mean(1)
                 tallies[name][kind].add(pred[None], r["truth"][None], label_hit[None], label_u[None])
     rows = []
     for name, k, t in rules:
@@ -201,6 +272,9 @@ def run(data_dir="outputs/preprocess", views=8, rules=DEFAULT_RULES, light_net=N
         "label_k": LABEL_K,
         "light_net": None if light_net is None else str(light_net),
         "material": None if material is None else str(material),
+        "uncertain_hits_continued_to_a_confident_pixel": (
+            continued_share[0] / continued_share[1] if continue_behind and continued_share[1] else None
+        ),
         "rules": rows,
         "summary": summarise(rows),
     }
@@ -276,12 +350,15 @@ def main(argv=None) -> None:
     p.add_argument("--rule", action="append", default=None, help="NAME:K:T (repeatable; default: the built-in set)")
     p.add_argument("--light-net", default=None, help="a LightNet export: swap its sources in (rules ignored)")
     p.add_argument("--material", default=None, help="the MaterialNet export whose G-buffers the LightNet trained on")
+    p.add_argument(
+        "--continue-behind", action="store_true", help="rows with uncertain hits marched on behind their occluder"
+    )
     p.add_argument("--name", default="blend_floor")
     add_threads_option(p)
     a = p.parse_args(argv)
     apply_threads(a.threads)
     rules = tuple(parse_rule(r) for r in a.rule) if a.rule else DEFAULT_RULES
-    print(publish(a.name, run(a.data_dir, a.views, rules, a.light_net, a.material), plot))
+    print(publish(a.name, run(a.data_dir, a.views, rules, a.light_net, a.material, a.continue_behind), plot))
 
 
 if __name__ == "__main__":

@@ -88,3 +88,26 @@ def test_the_results_page_renders_a_list_summary_and_refuses_a_scalar():
     assert "| k 10, t 0 (paper) | 0.0068 |" in block and "| hits local only | 0.143 |" in block
     with pytest.raises(ValueError, match="reports/bench/blend_floor.json: its summary is a float"):
         bench_block("blend_floor", {"summary": 0.5}, "tiny")
+
+
+def test_continued_hits_take_image_pixels_or_nothing(micro_shards):
+    from torch.utils.data import DataLoader, Subset
+
+    from pipeline.data.datasets import ShardDataset, collate_views
+
+    train = ShardDataset(str(micro_shards), "train", lighting=True)
+    batch = next(iter(DataLoader(Subset(train, [0]), 1, collate_fn=collate_views)))
+    gb = bf.ground_truth_gbuffers(batch)
+    r = bf.view_rays(batch, gb, "surf")
+    got = bf.continued_local(batch, gb, r, bf.LABEL_K)
+    uncertain = r["hit"] & (torch.tanh(bf.LABEL_K * r["gap"]) >= 0.5)
+    answered = torch.isfinite(got[:, 0])
+    assert not (answered & ~uncertain).any()  # only uncertain hits are marched on
+    pixels = batch["im"][0].clamp(min=0).permute(1, 2, 0).reshape(-1, 3).double()
+    for value in got[answered][:20]:  # each answer is one of the image's own pixels
+        assert (pixels - value).abs().sum(1).min() == 0
+    report = bf.run(str(micro_shards), views=1, continue_behind=True)
+    names = [row["rule"] for row in report["rules"]]
+    assert names[-2:] == ["k 10, t 0.9, out probe mean", "k 10, t 0.9, out probe mean, uncertain hits continued"]
+    share = report["uncertain_hits_continued_to_a_confident_pixel"]
+    assert share is None or 0.0 <= share <= 1.0
