@@ -317,6 +317,31 @@ def summarise(rows: list[dict]) -> list[dict]:
     ]
 
 
+def plot_class_parts(labels: list[str], part, title: str, path, target: float | None = None) -> None:
+    """One horizontal bar per row and probe kind, stacked by ray class: part(i, kind, cls) is row i's
+    class's contribution to its nMSE (0 where none); `target` a dashed line."""
+    fig = Figure(figsize=(10, 1.6 + 0.32 * len(labels)))
+    y = np.arange(len(labels))
+    for j, kind in enumerate(KINDS):
+        ax = fig.add_subplot(1, 2, j + 1)
+        left = np.zeros(len(labels))
+        for c in RAY_CLASSES:
+            v = np.array([part(i, kind, c) for i in range(len(labels))])
+            ax.barh(y, v, 0.6, left=left, label=c)
+            left += v
+        if target is not None:
+            ax.axvline(target, color="k", lw=0.8, ls="--")
+        ax.set_yticks(y, labels if j == 0 else [""] * len(labels), fontsize=7)
+        ax.invert_yaxis()
+        ax.set_xlabel(f"{kind} nMSE (class parts)")
+        ax.set_title(f"{kind} probes", fontsize=9)
+    handles, names = fig.axes[0].get_legend_handles_labels()
+    fig.legend(handles, names, loc="lower center", ncol=len(RAY_CLASSES), fontsize=8)
+    fig.suptitle(title, fontsize=9)
+    fig.tight_layout(rect=(0, 0.08, 1, 1))
+    fig.savefig(path, dpi=120)
+
+
 def plot(report: dict, path) -> None:
     rows = report["rules"]
     what = (
@@ -324,23 +349,12 @@ def plot(report: dict, path) -> None:
         if report.get("light_net") is None
         else "the network's sources swapped"
     )
-    fig = Figure(figsize=(9, 3.6))
-    for j, kind in enumerate(KINDS):
-        ax = fig.add_subplot(1, 2, j + 1)
-        x = np.arange(len(rows))
-        bottom = np.zeros(len(rows))
-        for c in RAY_CLASSES:
-            v = np.array([r.get(kind, {}).get("classes", {}).get(c, {}).get("nmse_contribution", 0.0) for r in rows])
-            ax.bar(x, v, 0.6, bottom=bottom, label=c)
-            bottom += v
-        ax.axhline(0.10, color="k", lw=0.8, ls="--", label="0.10")
-        ax.set_xticks(x, [r["rule"] for r in rows], rotation=30, ha="right", fontsize=7)
-        ax.set_ylabel(f"{kind} nMSE (class contributions)")
-        ax.set_title(f"{kind} probes", fontsize=9)
-        ax.legend(fontsize=7)
-    fig.suptitle(f"LightNet's blend with {what}, {report['views']} training views", fontsize=9)
-    fig.tight_layout()
-    fig.savefig(path, dpi=120)
+
+    def part(i, kind, c):
+        return rows[i].get(kind, {}).get("classes", {}).get(c, {}).get("nmse_contribution", 0.0)
+
+    title = f"LightNet's blend with {what}, {report['views']} training views (dashed: 0.10)"
+    plot_class_parts([r["rule"] for r in rows], part, title, path, target=0.10)
 
 
 def main(argv=None) -> None:

@@ -32,9 +32,7 @@ import argparse
 import json
 from pathlib import Path
 
-import numpy as np
 import torch
-from matplotlib.figure import Figure
 from tqdm import tqdm
 
 from pipeline.bench.blend_floor import (
@@ -44,6 +42,7 @@ from pipeline.bench.blend_floor import (
     ground_truth_gbuffers,
     network_sources,
     network_system,
+    plot_class_parts,
     view_rays,
 )
 from pipeline.bench.common import add_threads_option, apply_threads, publish
@@ -203,30 +202,15 @@ def run(data_dir="outputs/preprocess", split="test", views=None, light_net=None)
 
 def plot(report: dict, path) -> None:
     rows = report["rows"]
-    fig = Figure(figsize=(10, 4.2))
-    for j, kind in enumerate(KINDS):
-        ax = fig.add_subplot(1, 2, j + 1)
-        y = np.arange(len(rows))
-        left = np.zeros(len(rows))
-        for c in RAY_CLASSES:
-            v = np.array([r.get(kind, {}).get("classes", {}).get(c, 0.0) for r in rows])
-            ax.barh(y, v, 0.6, left=left, label=c)
-            left += v
-        ax.set_yticks(y, [r["source"] for r in rows], fontsize=7)
-        ax.invert_yaxis()
-        ax.set_xlabel(f"{kind} nMSE (class parts)")
-        ax.set_title(f"{kind} probes", fontsize=9)
-        if j:
-            ax.set_yticks(y, [""] * len(rows))
-    fig.suptitle(
+
+    def part(i, kind, c):
+        return rows[i].get(kind, {}).get("classes", {}).get(c, 0.0)
+
+    title = (
         f"out-of-view light from what the photo shows: {report['views']} {report['split']} views, "
-        f"ground-truth G-buffers, the local source the image's pixel",
-        fontsize=9,
+        "ground-truth G-buffers, the local source the image's pixel"
     )
-    handles, labels = fig.axes[0].get_legend_handles_labels()
-    fig.legend(handles, labels, loc="lower center", ncol=len(RAY_CLASSES), fontsize=8)
-    fig.tight_layout(rect=(0, 0.06, 1, 1))
-    fig.savefig(path, dpi=120)
+    plot_class_parts([r["source"] for r in rows], part, title, path)
 
 
 def main(argv=None) -> None:
