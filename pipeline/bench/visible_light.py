@@ -18,7 +18,11 @@ out-of-view source:
   photo's structure with an oracle of the unseen energy);
 with `<box>` the room's true box (from the room file) or the one `ops.roombox` estimates from the
 ground-truth normals and depth; with `--light-net` the trained network's own out-of-view branch too.
-A ladder of oracles says how finely the light must be placed on the box: `true box, N x N per face`
+`true lamps` answers a direction that meets one of the room file's ceiling panels (a ray against each
+lamp's rectangle; nothing else occludes it) with the lamp's emitted radiance and every other direction
+with its probe's true mean over the texels that see no lamp (`the rest at the probe's mean`) or the
+photo's mean (`the rest at the image mean`): what a branch that knew where the lamps are, and nothing
+else, would score. A ladder of oracles says how finely the light must be placed on the box: `true box, N x N per face`
 gives each direction the mean true radiance of all the view's probe directions (both kinds) that leave
 the true box through the same texel of an N x N grid per face, N = 1 (each face's mean) up to 32 (fitted
 to the probes themselves: an in-sample oracle, the representation's reach, not a prediction).
@@ -32,6 +36,7 @@ import argparse
 import json
 from pathlib import Path
 
+import numpy as np
 import torch
 from tqdm import tqdm
 
@@ -75,6 +80,44 @@ def texel_means(index: torch.Tensor, radiance: torch.Tensor, cells: int) -> torc
     return total / count.clamp(min=1)[:, None]
 
 
+def room_lamps(source_root: Path, view_id: str):
+    """The view's ceiling panels in view space: centre (L, 3), half-axes u, v (L, 3) and emitted radiance
+    (L, 3), float64, from the room file's `lamp` shapes (unit rectangles scaled by `to_world`, emitting
+    on the side their normal faces) and the camera's `world_from_view`."""
+    scene, view = view_id.split("/")
+    room = json.loads((source_root / scene / "scene.json").read_text())
+    world_from_view = torch.tensor(
+        json.loads((source_root / scene / "cameras.json").read_text())[view]["world_from_view"], dtype=torch.float64
+    )
+    view_from_world = torch.linalg.inv(world_from_view)
+    lamps = [shape for shape in room["shapes"] if shape["role"] == "lamp"]
+    if not lamps:
+        return None
+    m = torch.tensor([lamp["to_world"] for lamp in lamps], dtype=torch.float64)  # (L, 4, 4)
+    rot, move = view_from_world[:3, :3], view_from_world[:3, 3]
+    centre = m[:, :3, 3] @ rot.T + move
+    u, v, n = m[:, :3, 0] @ rot.T, m[:, :3, 1] @ rot.T, m[:, :3, 2] @ rot.T
+    emission = torch.tensor([lamp["emission"] for lamp in lamps], dtype=torch.float64)
+    return {"centre": centre, "u": u, "v": v, "normal": n, "emission": emission}
+
+
+def lamp_radiance(lamps: dict, origin: torch.Tensor, direction: torch.Tensor):
+    """Radiance (N, 3) of the nearest lamp each ray origin + t direction (N, 3), view space, meets from its
+    emitting side, and whether it met one (N,) bool."""
+    o, d = origin.double(), direction.double()
+    denom = d @ lamps["normal"].T  # (N, L): < 0 when the ray comes at the emitting side
+    t = ((lamps["centre"][None] - o[:, None]) * lamps["normal"][None]).sum(-1) / denom.clamp(max=-1e-12)
+    point = o[:, None] + t[..., None] * d[:, None] - lamps["centre"][None]
+    a = (point * lamps["u"][None]).sum(-1) / (lamps["u"] ** 2).sum(-1)
+    b = (point * lamps["v"][None]).sum(-1) / (lamps["v"] ** 2).sum(-1)
+    meets = (denom < 0) & (t > 0) & (a.abs() <= 1) & (b.abs() <= 1)
+    t = torch.where(meets, t, torch.full_like(t, float("inf")))
+    nearest = t.argmin(1)
+    met = meets.any(1)
+    radiance = torch.where(met[:, None], lamps["emission"][nearest], torch.zeros(len(o), 3, dtype=torch.float64))
+    return radiance, met
+
+
 def seen_lookup(batch: dict, gb: dict, box, origin: torch.Tensor, direction: torch.Tensor, size: int):
     """Where directions (N, 3) from origins (N, 3), view space, leave `box` (rotation (3, 3), lo, hi (3,)):
     the observed radiance there (N, 3) and whether the camera saw that texel (N,) bool (nearest texel)."""
@@ -96,7 +139,7 @@ def seen_lookup(batch: dict, gb: dict, box, origin: torch.Tensor, direction: tor
     return values, seen
 
 
-def out_sources(batch: dict, gb: dict, r: dict, kind: str, boxes: dict, ladder: dict) -> dict:
+def out_sources(batch: dict, gb: dict, r: dict, kind: str, boxes: dict, ladder: dict, lamps=None) -> dict:
     """Every out-of-view source of the module's rows at the directions of `view_rays`, (M S, 3) float64;
     `ladder`: per grid size, the view's texel means on the true box (`texel_means`)."""
     M, S = r["M"], r["S"]
@@ -112,6 +155,14 @@ def out_sources(batch: dict, gb: dict, r: dict, kind: str, boxes: dict, ladder: 
         out[f"seen, {name}, unseen at the image mean"] = torch.where(seen[:, None], values, image_mean)
         out[f"seen, {name}, unseen at the probe mean"] = torch.where(seen[:, None], values, probe_mean)
         out[f"{name}: share of out-of-view directions seen"] = seen
+    if lamps is not None:
+        glow, met = lamp_radiance(lamps, r["origin"], r["direction"])
+        dark = ~met.view(P, T * S).view(P, T, S).any(-1)  # texels that see no lamp
+        rest = (r["truth"].view(P, T, 3) * dark[..., None]).sum(1) / dark.sum(1).clamp(min=1)[:, None]
+        rest = rest.repeat_interleave(T * S, 0)
+        out["true lamps, the rest at the probe's mean (oracle)"] = torch.where(met[:, None], glow, rest)
+        out["true lamps, the rest at the image mean"] = torch.where(met[:, None], glow, image_mean)
+        out["lamp texels: truth over lamp radiance"] = (glow, met)
     for size, means in ladder.items():
         out[f"true box, {size} x {size} per face (oracle)"] = means[
             box_texels(boxes["true box"], r["origin"], r["direction"], size)
@@ -136,6 +187,7 @@ def run(data_dir="outputs/preprocess", split="test", views=None, light_net=None)
     system = None if light_net is None else network_system(light_net)
     tallies: dict[str, dict[str, EnergyTally]] = {}
     seen_counts = {name: [0, 0] for name in BOXES}
+    lamp_ratio: list[float] = []
     loader = DataLoader(Subset(data, range(count)), 1, collate_fn=collate_views)
     for batch in tqdm(loader, total=count, desc=f"views ({split})"):
         item_id = batch["id"][0]
@@ -152,8 +204,15 @@ def run(data_dir="outputs/preprocess", split="test", views=None, light_net=None)
             )
             radiance = torch.cat([r["truth"].repeat_interleave(r["S"], 0) for r in traced.values()])
             ladder[size] = texel_means(index, radiance, 6 * size * size)
+        lamps = room_lamps(source_root, item_id)
         for kind, r in traced.items():
-            sources = out_sources(batch, gb, r, kind, boxes, ladder)
+            sources = out_sources(batch, gb, r, kind, boxes, ladder, lamps)
+            if lamps is not None:  # the lamps' units against the probes': texels wholly on a lamp
+                glow, met = sources.pop("lamp texels: truth over lamp radiance")
+                full = met.view(r["M"], r["S"]).all(1)
+                if full.any():
+                    lamp_mean = glow.view(r["M"], r["S"], 3).mean(1)[full].mean(1)
+                    lamp_ratio.extend((r["truth"][full].mean(1) / lamp_mean).tolist())
             if system is not None:
                 sources["network"] = network_sources(system, batch, gb, r)["out"]
             miss = (~r["hit"]) | (confidence(r["hit"], r["gap"], K) >= THRESHOLD)
@@ -187,6 +246,8 @@ def run(data_dir="outputs/preprocess", split="test", views=None, light_net=None)
         "texture_size": TEXTURE_SIZE,
         "light_net": None if light_net is None else str(light_net),
         "out_of_view_directions_seen": seen_share,
+        "lamp_texels": len(lamp_ratio),
+        "lamp_texel_truth_over_emission_median": float(np.median(lamp_ratio)) if lamp_ratio else None,
         "rows": rows,
         "summary": [
             {

@@ -32,10 +32,30 @@ def test_texel_means_average_each_cell():
     assert means[:, 0].tolist() == [2.0, 0.0, 4.0, 0.0]
 
 
+def test_rays_meet_a_lamp_only_from_its_emitting_side_and_inside_it():
+    lamps = {
+        "centre": torch.tensor([[0.0, 2.0, 0.0]], dtype=torch.float64),
+        "u": torch.tensor([[0.5, 0.0, 0.0]], dtype=torch.float64),
+        "v": torch.tensor([[0.0, 0.0, 0.25]], dtype=torch.float64),
+        "normal": torch.tensor([[0.0, -1.0, 0.0]], dtype=torch.float64),  # a ceiling panel facing down
+        "emission": torch.tensor([[5.0, 4.0, 3.0]], dtype=torch.float64),
+    }
+    origin = torch.tensor([[0.0, 0.0, 0.0], [0.0, 0.0, 0.0], [0.0, 3.0, 0.0], [0.0, 0.0, 0.0]], dtype=torch.float64)
+    direction = torch.tensor([[0.0, 1.0, 0.0], [0.2, 1.0, 0.0], [0.0, -1.0, 0.0], [0.0, 1.0, 0.2]], dtype=torch.float64)
+    radiance, met = vl.lamp_radiance(lamps, origin, direction / direction.norm(dim=-1, keepdim=True))
+    # straight up: met; 0.4 m off along u (half-size 0.5): met; from above (its back): not; 0.4 m along v
+    # (half-size 0.25): not
+    assert met.tolist() == [True, True, False, False]
+    assert radiance[0].tolist() == [5.0, 4.0, 3.0] and radiance[2].tolist() == [0.0, 0.0, 0.0]
+
+
 def test_runs_on_the_micro_data(micro_shards, micro_exports, tmp_path):
     report = vl.run(str(micro_shards), split="train", views=1, light_net=micro_exports / "light.pt")
     rows = {r["source"]: r for r in report["rows"]}
     assert {"truth", "probe mean", "network"} <= set(rows)
+    assert "true lamps, the rest at the probe's mean (oracle)" in rows  # the micro rooms have lamps
+    ratio = report["lamp_texel_truth_over_emission_median"]
+    assert ratio is None or 0.5 < ratio < 1.5  # the lamps' radiance in the probes' units
     assert all(f"true box, {n} x {n} per face (oracle)" in rows for n in vl.LADDER)
     for row in report["rows"]:
         for kind in vl.KINDS:
