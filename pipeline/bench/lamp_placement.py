@@ -1,0 +1,316 @@
+"""`python -m pipeline.bench.lamp_placement`: can the photo tell where the room's lamps are?
+
+`bench.visible_light` found the held-out light error to be the placement of the ceiling lamps: knowing
+them takes the test views' surface nMSE from the trained branch's 0.88 to 0.35. This bench asks whether
+a network learns that placement from the photo. Each view's target is the ceiling of its true box
+(`bench.roombox_floor.true_box`, in the canonical frame: columns along view x, rows along view z) cut
+into `--grid` x `--grid` cells, each holding the lamps' emitted luminance times the share of the cell
+they cover (`ceiling_lamps`). A small CNN (`PlacementNet`) maps the photo (log of its radiance over its
+mean, `--size` pixels high) to a distribution over the cells, trained on the training split with the
+cross-entropy to the target's distribution (left-right mirrored views as augmentation; the epoch with the
+lowest cross-entropy on the validation split kept), and is scored on
+the test split against two priors that see no photo: uniform over the ceiling, and the training rooms'
+mean placement. Scores: the cross-entropy, the predicted share on the cells that hold a lamp, and the
+light: every rule blends as tiny's LightNet does with the image's pixel as the local source, on
+ground-truth G-buffers (`bench.visible_light`), and each out-of-view direction that leaves the true box
+through the ceiling takes its cell's lamp radiance under the placement (the view's true lamp total
+spread by the placement's distribution: energy is given, placement is scored) plus the photo's mean;
+every other direction the photo's mean. `true lamps` (exact panels) and `true placement` (the target
+cells) bound it from below. Writes reports/bench/lamp_placement.json (or `--name`) and a PNG.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+from pathlib import Path
+
+import numpy as np
+import torch
+from matplotlib.figure import Figure
+from torch import nn
+from torch.nn import functional as F
+from tqdm import tqdm
+
+from pipeline.bench.blend_floor import KINDS, LABEL_K, blended, ground_truth_gbuffers, view_rays
+from pipeline.bench.common import add_threads_option, apply_threads, publish
+from pipeline.bench.light_energy import RAY_CLASSES, EnergyTally
+from pipeline.bench.roombox_floor import true_box
+from pipeline.bench.visible_light import THRESHOLD, K, box_texels, lamp_radiance, room_lamps
+from pipeline.models.light_net import confidence
+
+CEILING = 3  # face index of the box's ceiling (ops.roombox.FACES)
+SUB = 4  # sub-points per cell side when measuring a lamp's cover
+
+
+def ceiling_lamps(lamps: dict | None, box, grid: int) -> torch.Tensor:
+    """(grid, grid, 3) radiance of the true lamps averaged over each cell of the box's ceiling (rows t
+    along the box's z, columns s along its x, as `ops.roombox` lays a ceiling texture out), float64."""
+    out = torch.zeros(grid, grid, 3, dtype=torch.float64)
+    if lamps is None:
+        return out
+    rot, lo, hi = (t.double() for t in box)
+    n = grid * SUB
+    x = lo[0] + (torch.arange(n, dtype=torch.float64) + 0.5) / n * (hi[0] - lo[0])
+    z = lo[2] + (torch.arange(n, dtype=torch.float64) + 0.5) / n * (hi[2] - lo[2])
+    zz, xx = torch.meshgrid(z, x, indexing="ij")
+    q = torch.stack([xx, torch.full_like(xx, float(hi[1])), zz], -1).reshape(-1, 3)
+    p = q @ rot.T  # view space
+    d = p - lamps["centre"][:, None]  # (L, P, 3)
+    a = (d * lamps["u"][:, None]).sum(-1) / (lamps["u"] ** 2).sum(-1)[:, None]
+    b = (d * lamps["v"][:, None]).sum(-1) / (lamps["v"] ** 2).sum(-1)[:, None]
+    inside = ((a.abs() <= 1) & (b.abs() <= 1)).double()  # (L, P)
+    radiance = (inside[..., None] * lamps["emission"][:, None]).sum(0).view(grid, SUB, grid, SUB, 3)
+    return radiance.mean((1, 3))
+
+
+def luminance(rgb: torch.Tensor) -> torch.Tensor:
+    return rgb @ torch.tensor([0.2126, 0.7152, 0.0722], dtype=rgb.dtype)
+
+
+class PlacementNet(nn.Module):
+    """Photo (B, 3, H, W), log radiance over its mean -> logits (B, grid * grid) over the ceiling's cells."""
+
+    def __init__(self, grid: int, width: int = 32):
+        super().__init__()
+        self.features = nn.Sequential(
+            nn.Conv2d(3, width // 2, 3, 2, 1),
+            nn.ReLU(),
+            nn.Conv2d(width // 2, width, 3, 2, 1),
+            nn.ReLU(),
+            nn.Conv2d(width, width, 3, 2, 1),
+            nn.ReLU(),
+            nn.AdaptiveAvgPool2d((4, 5)),  # keeps where in the photo
+        )
+        self.head = nn.Linear(width * 20, grid * grid)
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        return self.head(self.features(x).flatten(1))
+
+
+def photo_input(im: torch.Tensor, height: int) -> torch.Tensor:
+    """(3, H, W) HDR -> (3, height, height * W / H) log radiance over the photo's mean."""
+    x = torch.log1p(im.clamp(min=0) / im.clamp(min=0).mean().clamp(min=1e-8))
+    width = round(height * im.shape[-1] / im.shape[-2])
+    return F.interpolate(x[None], size=(height, width), mode="area")[0]
+
+
+def split_targets(data, source_root: Path, grid: int, height: int):
+    """Inputs (N, 3, h, w) and target cell radiance (N, grid, grid, 3) of every view of a dataset."""
+    xs, ys = [], []
+    for i in tqdm(range(len(data)), desc="targets"):
+        item = data[i]
+        box = true_box(source_root, item["id"])
+        ys.append(ceiling_lamps(room_lamps(source_root, item["id"]), box, grid))
+        xs.append(photo_input(item["im"], height))
+    return torch.stack(xs), torch.stack(ys)
+
+
+def distribution(cells: torch.Tensor) -> torch.Tensor:
+    """(N, grid, grid, 3) cell radiance -> (N, grid * grid) share of the lamps' luminance (uniform where none)."""
+    w = luminance(cells).flatten(1)
+    total = w.sum(1, keepdim=True)
+    return torch.where(total > 0, w / total.clamp(min=1e-12), torch.full_like(w, 1 / w.shape[1]))
+
+
+def train(x, target, x_val, target_val, grid: int, epochs: int, seed: int) -> tuple[PlacementNet, list[float]]:
+    """PlacementNet fitted to distributions target (N, grid * grid), mirrored views included; the epoch
+    whose validation cross-entropy is lowest is kept (252 rooms overfit long before the last epoch).
+    Returns the net and the validation cross-entropy after each epoch."""
+    import copy
+
+    torch.manual_seed(seed)
+    net = PlacementNet(grid)
+    opt = torch.optim.AdamW(net.parameters(), lr=1e-3, weight_decay=1e-4)
+    mirrored = target.view(-1, grid, grid).flip(-1).reshape(len(target), -1)  # view x <-> box x
+    xs, ts = torch.cat([x, x.flip(-1)]), torch.cat([target, mirrored])
+    g = torch.Generator().manual_seed(seed)
+    best, best_state, curve = math.inf, copy.deepcopy(net.state_dict()), []
+    for _ in tqdm(range(epochs), desc="placement net"):
+        net.train()
+        for idx in torch.randperm(len(xs), generator=g).split(16):
+            loss = -(ts[idx] * F.log_softmax(net(xs[idx]), -1)).sum(1).mean()
+            opt.zero_grad()
+            loss.backward()
+            opt.step()
+        net.eval()
+        with torch.no_grad():
+            curve.append(float(-(target_val * F.log_softmax(net(x_val), -1)).sum(1).mean()))
+        if curve[-1] < best:
+            best, best_state = curve[-1], copy.deepcopy(net.state_dict())
+    net.load_state_dict(best_state)
+    return net.eval(), curve
+
+
+def placement_scores(pred: torch.Tensor, target: torch.Tensor) -> dict:
+    """Mean cross-entropy (nats) and mean predicted share on the cells holding a lamp, over views."""
+    ce = -(target * pred.clamp(min=1e-12).log()).sum(1)
+    on_lamps = (pred * (target > 0)).sum(1)
+    return {"cross_entropy": float(ce.mean()), "share_on_lamp_cells": float(on_lamps.mean())}
+
+
+@torch.no_grad()
+def light_scores(test, source_root: Path, grid: int, placements: dict) -> dict:
+    """Per placement (name -> (N, grid * grid) distributions over the test views), the surface and free
+    nMSE and class parts of the light with the lamps' radiance spread by that placement (module docstring)."""
+    from torch.utils.data import DataLoader
+
+    from pipeline.data.datasets import collate_views
+
+    names = ["true lamps", "true placement", *placements]
+    tallies = {name: {k: EnergyTally() for k in KINDS} for name in names}
+    loader = DataLoader(test, 1, collate_fn=collate_views)
+    for i, batch in enumerate(tqdm(loader, total=len(test), desc="light (test)")):
+        view_id = batch["id"][0]
+        box = true_box(source_root, view_id)
+        lamps = room_lamps(source_root, view_id)
+        cells = ceiling_lamps(lamps, box, grid)
+        total = cells.reshape(-1, 3).sum(0)  # the lamps' radiance summed over cells: spread by a placement
+        gb = ground_truth_gbuffers(batch)
+        image_mean = batch["im"][0].double().clamp(min=0).mean((1, 2))
+        for kind in KINDS:
+            r = view_rays(batch, gb, kind)
+            if r is None:
+                continue
+            index = box_texels(box, r["origin"], r["direction"], grid)
+            ceiling = (index // (grid * grid)) == CEILING
+            cell = index % (grid * grid)
+            rest = image_mean.expand(len(index), 3)
+            out = {}
+            if lamps is not None:
+                glow, met = lamp_radiance(lamps, r["origin"], r["direction"])
+                out["true lamps"] = torch.where(met[:, None], glow, rest)
+            else:
+                out["true lamps"] = rest
+            out["true placement"] = torch.where(ceiling[:, None], cells.reshape(-1, 3)[cell] + rest, rest)
+            for name, dist in placements.items():
+                spread = dist[i][:, None].double() * total[None]  # (grid * grid, 3)
+                out[name] = torch.where(ceiling[:, None], spread[cell] + rest, rest)
+            label_u = confidence(r["hit"], r["gap"], LABEL_K).view(r["M"], r["S"]).mean(1)
+            label_hit = r["hit"].view(r["M"], r["S"]).float().mean(1) > 0.5
+            for name, o in out.items():
+                pred = blended(r["local"], o, r["hit"], r["gap"], K, THRESHOLD).view(r["M"], r["S"], 3).mean(1)
+                tallies[name][kind].add(pred[None], r["truth"][None], label_hit[None], label_u[None])
+    rows = {}
+    for name, by_kind in tallies.items():
+        rows[name] = {}
+        for kind, t in by_kind.items():
+            if t.sums:
+                s = t.summary()
+                rows[name][kind] = {
+                    "nmse": s["nmse"]["lightnet"],
+                    "classes": {c: s["classes"][c]["nmse_contribution"] for c in RAY_CLASSES},
+                }
+    return rows
+
+
+def run(data_dir="outputs/preprocess", grid=8, height=60, epochs=60, seed=0, seeds=3) -> dict:
+    from pipeline.data.datasets import ShardDataset
+
+    manifest = json.loads((Path(data_dir) / "manifest.json").read_text())
+    source_root = Path(manifest["source_root"])
+    if not source_root.is_dir():
+        raise FileNotFoundError(f"{data_dir}/manifest.json: source_root {source_root} (the room files) is missing")
+    if grid < 1 or height < 8 or epochs < 1 or seeds < 1:
+        raise ValueError(
+            f"--grid {grid}, --size {height}, --epochs {epochs}, --seeds {seeds}: need grid >= 1, size >= 8, "
+            "epochs >= 1, seeds >= 1"
+        )
+    train_set, test_set = ShardDataset(data_dir, "train", lighting=False), ShardDataset(data_dir, "test", lighting=True)
+    val_set = ShardDataset(data_dir, "val", lighting=False)
+    x_train, cells_train = split_targets(train_set, source_root, grid, height)
+    x_val, cells_val = split_targets(val_set, source_root, grid, height)
+    x_test, cells_test = split_targets(test_set, source_root, grid, height)
+    t_train, t_val, t_test = distribution(cells_train), distribution(cells_val), distribution(cells_test)
+    uniform = torch.full_like(t_test, 1 / t_test.shape[1])
+    mean_prior = t_train.mean(0, keepdim=True).expand_as(t_test)
+    placements = {"uniform over the ceiling": uniform, "training rooms' mean": mean_prior}
+    val_curves, kept, fitted_scores = {}, {}, {}
+    for sd in range(seed, seed + seeds):
+        net, val_curves[sd] = train(x_train, t_train, x_val, t_val, grid, epochs, sd)
+        kept[sd] = int(np.argmin(val_curves[sd])) + 1
+        with torch.no_grad():
+            placements[f"from the photo, seed {sd}"] = predicted = F.softmax(net(x_test), -1)
+            fitted_scores[sd] = placement_scores(F.softmax(net(x_train), -1), t_train)
+    report = {
+        "data_dir": str(data_dir),
+        "grid": grid,
+        "input_height": height,
+        "epochs": epochs,
+        "seed": seed,
+        "train_views": len(train_set),
+        "val_views": len(val_set),
+        "test_views": len(test_set),
+        "seeds": list(range(seed, seed + seeds)),
+        "validation_cross_entropy": {str(k): v for k, v in val_curves.items()},
+        "kept_epoch": {str(k): v for k, v in kept.items()},
+        "validation_cross_entropy_of_the_training_mean": placement_scores(
+            t_train.mean(0, keepdim=True).expand_as(t_val), t_val
+        )["cross_entropy"],
+        "placement": {name: placement_scores(p, t_test) for name, p in placements.items()},
+        "placement_on_training_views": {str(k): v for k, v in fitted_scores.items()},
+        "light": light_scores(test_set, source_root, grid, placements),
+    }
+    report["summary"] = [
+        {
+            "placement": name,
+            "surface nMSE": row.get("surf", {}).get("nmse"),
+            "free nMSE": row.get("free", {}).get("nmse"),
+            "cross-entropy (nats)": report["placement"].get(name, {}).get("cross_entropy"),
+            "share on lamp cells": report["placement"].get(name, {}).get("share_on_lamp_cells"),
+        }
+        for name, row in report["light"].items()
+    ]
+    report["examples"] = {
+        "target": t_test[:4].view(-1, grid, grid).tolist(),
+        "from the photo": predicted[:4].view(-1, grid, grid).tolist(),
+    }
+    return report
+
+
+def plot(report: dict, path) -> None:
+    fig = Figure(figsize=(11, 5.6))
+    names = list(report["light"])
+    ax = fig.add_subplot(2, 1, 1)
+    y = np.arange(len(names))
+    for j, kind in enumerate(KINDS):
+        vals = [report["light"][n].get(kind, {}).get("nmse", math.nan) for n in names]
+        ax.barh(y + 0.4 * j - 0.2, vals, 0.4, label=f"{kind} nMSE")
+    ax.set_yticks(y, names, fontsize=8)
+    ax.invert_yaxis()
+    ax.legend(fontsize=7)
+    ax.set_title(
+        f"light on {report['test_views']} test views with the lamps' energy placed on the ceiling "
+        f"({report['grid']} x {report['grid']} cells)",
+        fontsize=9,
+    )
+    ex = report["examples"]
+    for i in range(min(4, len(ex["target"]))):
+        for j, key in enumerate(("target", "from the photo")):
+            a = fig.add_subplot(2, 8, 9 + 2 * i + j)
+            a.imshow(np.array(ex[key][i]), cmap="magma")
+            a.set_xticks([])
+            a.set_yticks([])
+            a.set_title(f"view {i}: {'true' if j == 0 else 'predicted'}", fontsize=7)
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+
+
+def main(argv=None) -> None:
+    p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("--data-dir", default="outputs/preprocess")
+    p.add_argument("--grid", type=int, default=8)
+    p.add_argument("--size", type=int, default=60, help="input photo height in pixels")
+    p.add_argument("--epochs", type=int, default=60)
+    p.add_argument("--seed", type=int, default=0, help="the first seed")
+    p.add_argument("--seeds", type=int, default=3, help="networks trained, from --seed on")
+    p.add_argument("--name", default="lamp_placement")
+    add_threads_option(p)
+    a = p.parse_args(argv)
+    apply_threads(a.threads)
+    print(publish(a.name, run(a.data_dir, a.grid, a.size, a.epochs, a.seed, a.seeds), plot))
+
+
+if __name__ == "__main__":
+    main()
