@@ -286,13 +286,14 @@ def plot(report: dict, path) -> None:
         fontsize=9,
     )
     ex = report["examples"]
+    last = report["seeds"][-1]
     for i in range(min(4, len(ex["target"]))):
         for j, key in enumerate(("target", "from the photo")):
             a = fig.add_subplot(2, 8, 9 + 2 * i + j)
             a.imshow(np.array(ex[key][i]), cmap="magma")
             a.set_xticks([])
             a.set_yticks([])
-            a.set_title(f"view {i}: {'true' if j == 0 else 'predicted'}", fontsize=7)
+            a.set_title(f"view {i}: " + ("true" if j == 0 else f"seed {last}"), fontsize=7)
     fig.tight_layout()
     fig.savefig(path, dpi=110)
 

@@ -1,0 +1,49 @@
+"""bench.lamp_placement: lamp cover on a ceiling grid is measured where the lamp is, distributions are
+shares, and the bench trains, keeps its best validation epoch and scores every placement on micro data."""
+
+import math
+
+import pytest
+import torch
+
+from pipeline.bench import lamp_placement as lp
+
+
+def test_a_lamp_covers_the_cells_it_lies_over():
+    box = (torch.eye(3, dtype=torch.float64), torch.tensor([-2.0, 0.0, -2.0]), torch.tensor([2.0, 3.0, 2.0]))
+    lamps = {  # one panel 1 m x 1 m centred over the ceiling's cell (row 3, column 0) of a 4 x 4 grid
+        "centre": torch.tensor([[-1.5, 2.999, 1.5]], dtype=torch.float64),
+        "u": torch.tensor([[0.5, 0.0, 0.0]], dtype=torch.float64),
+        "v": torch.tensor([[0.0, 0.0, 0.5]], dtype=torch.float64),
+        "normal": torch.tensor([[0.0, -1.0, 0.0]], dtype=torch.float64),
+        "emission": torch.tensor([[10.0, 8.0, 6.0]], dtype=torch.float64),
+    }
+    cells = lp.ceiling_lamps(lamps, box, 4)
+    assert cells[3, 0].tolist() == [10.0, 8.0, 6.0]  # rows along z, columns along x
+    assert float(cells.sum()) == pytest.approx(24.0)  # nothing elsewhere
+    share = lp.distribution(cells[None])
+    assert float(share[0, 12]) == pytest.approx(1.0)
+    empty = lp.distribution(torch.zeros(1, 4, 4, 3, dtype=torch.float64))
+    assert torch.allclose(empty, torch.full_like(empty, 1 / 16))  # no lamp: a uniform share
+    assert lp.ceiling_lamps(None, box, 4).abs().sum() == 0
+
+
+def test_runs_on_the_micro_data(micro_shards, tmp_path):
+    report = lp.run(str(micro_shards), grid=2, height=8, epochs=2, seeds=1)
+    assert report["kept_epoch"]["0"] in (1, 2) and len(report["validation_cross_entropy"]["0"]) == 2
+    names = [row["placement"] for row in report["summary"]]
+    assert names == [
+        "true lamps",
+        "true placement",
+        "uniform over the ceiling",
+        "training rooms' mean",
+        "from the photo, seed 0",
+    ]
+    for row in report["summary"]:
+        assert math.isfinite(row["surface nMSE"])
+    uniform = report["placement"]["uniform over the ceiling"]
+    assert uniform["cross_entropy"] == pytest.approx(math.log(4))  # 4 cells
+    lp.plot(report, tmp_path / "l.png")
+    assert (tmp_path / "l.png").stat().st_size > 5_000
+    with pytest.raises(ValueError, match="--seeds 0"):
+        lp.run(str(micro_shards), seeds=0)
