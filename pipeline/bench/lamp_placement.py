@@ -10,9 +10,10 @@ mean, `--size` pixels high) to a distribution over the cells, trained on the tra
 cross-entropy to the target's distribution (left-right mirrored views as augmentation; the epoch with the
 lowest cross-entropy on the validation split kept), and is scored on
 the test split against two priors that see no photo: uniform over the ceiling, and the training rooms'
-mean placement. Scores: the cross-entropy, the predicted share on the cells that hold a lamp, and the
-light: every rule blends as tiny's LightNet does with the image's pixel as the local source, on
-ground-truth G-buffers (`bench.visible_light`), and each out-of-view direction that leaves the true box
+mean placement (each placement's light error minus the mean placement's, paired by view, with a
+bootstrap interval over the test views). Scores: the cross-entropy, the predicted share on the cells
+that hold a lamp, and the light: every rule blends as tiny's LightNet does with the image's pixel as the
+local source, on ground-truth G-buffers (`bench.visible_light`), and each out-of-view direction that leaves the true box
 through the ceiling takes its cell's lamp radiance under the placement (the view's true lamp total
 spread by the placement's distribution: energy is given, placement is scored) plus the photo's mean;
 every other direction the photo's mean. `true lamps` (exact panels) and `true placement` (the target
@@ -160,6 +161,7 @@ def light_scores(test, source_root: Path, grid: int, placements: dict) -> dict:
 
     names = ["true lamps", "true placement", *placements]
     tallies = {name: {k: EnergyTally() for k in KINDS} for name in names}
+    per_view = {k: {"energy": [], **{name: [] for name in names}} for k in KINDS}  # summed squares per view
     loader = DataLoader(test, 1, collate_fn=collate_views)
     for i, batch in enumerate(tqdm(loader, total=len(test), desc="light (test)")):
         view_id = batch["id"][0]
@@ -189,9 +191,11 @@ def light_scores(test, source_root: Path, grid: int, placements: dict) -> dict:
                 out[name] = torch.where(ceiling[:, None], spread[cell] + rest, rest)
             label_u = confidence(r["hit"], r["gap"], LABEL_K).view(r["M"], r["S"]).mean(1)
             label_hit = r["hit"].view(r["M"], r["S"]).float().mean(1) > 0.5
+            per_view[kind]["energy"].append(float((r["truth"] ** 2).sum()))
             for name, o in out.items():
                 pred = blended(r["local"], o, r["hit"], r["gap"], K, THRESHOLD).view(r["M"], r["S"], 3).mean(1)
                 tallies[name][kind].add(pred[None], r["truth"][None], label_hit[None], label_u[None])
+                per_view[kind][name].append(float(((pred - r["truth"]) ** 2).sum()))
     rows = {}
     for name, by_kind in tallies.items():
         rows[name] = {}
@@ -202,7 +206,25 @@ def light_scores(test, source_root: Path, grid: int, placements: dict) -> dict:
                     "nmse": s["nmse"]["lightnet"],
                     "classes": {c: s["classes"][c]["nmse_contribution"] for c in RAY_CLASSES},
                 }
-    return rows
+    return rows, per_view
+
+
+def paired_differences(per_view: dict, reference: str) -> dict:
+    """Per probe kind, each placement's pooled nMSE minus the reference's, paired by test view, with a
+    95 % bootstrap interval over views: mean(error_a - error_ref) / mean(energy) (`ratio_bootstrap`)."""
+    from pipeline.metrics.bootstrap import ratio_bootstrap
+
+    out = {}
+    for kind, cols in per_view.items():
+        if not cols["energy"]:
+            continue
+        ref = np.asarray(cols[reference])
+        for name, errors in cols.items():
+            if name in ("energy", reference):
+                continue
+            b = ratio_bootstrap(np.asarray(errors) - ref, cols["energy"])
+            out[f"{kind}: {name} - {reference}"] = {"diff": b["ratio"], "lo": b["lo"], "hi": b["hi"], "views": b["n"]}
+    return out
 
 
 def run(data_dir="outputs/preprocess", grid=8, height=60, epochs=60, seed=0, seeds=3) -> dict:
@@ -250,18 +272,25 @@ def run(data_dir="outputs/preprocess", grid=8, height=60, epochs=60, seed=0, see
         )["cross_entropy"],
         "placement": {name: placement_scores(p, t_test) for name, p in placements.items()},
         "placement_on_training_views": {str(k): v for k, v in fitted_scores.items()},
-        "light": light_scores(test_set, source_root, grid, placements),
     }
-    report["summary"] = [
-        {
-            "placement": name,
-            "surface nMSE": row.get("surf", {}).get("nmse"),
-            "free nMSE": row.get("free", {}).get("nmse"),
-            "cross-entropy (nats)": report["placement"].get(name, {}).get("cross_entropy"),
-            "share on lamp cells": report["placement"].get(name, {}).get("share_on_lamp_cells"),
-        }
-        for name, row in report["light"].items()
-    ]
+    report["light"], per_view = light_scores(test_set, source_root, grid, placements)
+    report["differences"] = paired_differences(per_view, "training rooms' mean")
+    report["summary"] = {
+        "each placement": [
+            {
+                "placement": name,
+                "surface nMSE": row.get("surf", {}).get("nmse"),
+                "free nMSE": row.get("free", {}).get("nmse"),
+                "cross-entropy (nats)": report["placement"].get(name, {}).get("cross_entropy"),
+                "share on lamp cells": report["placement"].get(name, {}).get("share_on_lamp_cells"),
+            }
+            for name, row in report["light"].items()
+        ],
+        "nMSE against the training rooms' mean placement, paired by test view (95 % bootstrap)": [
+            {"difference": name, "nMSE": d["diff"], "lo": d["lo"], "hi": d["hi"]}
+            for name, d in report["differences"].items()
+        ],
+    }
     report["examples"] = {
         "target": t_test[:4].view(-1, grid, grid).tolist(),
         "from the photo": predicted[:4].view(-1, grid, grid).tolist(),

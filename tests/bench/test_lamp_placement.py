@@ -31,7 +31,8 @@ def test_a_lamp_covers_the_cells_it_lies_over():
 def test_runs_on_the_micro_data(micro_shards, tmp_path):
     report = lp.run(str(micro_shards), grid=2, height=8, epochs=2, seeds=1)
     assert report["kept_epoch"]["0"] in (1, 2) and len(report["validation_cross_entropy"]["0"]) == 2
-    names = [row["placement"] for row in report["summary"]]
+    rows = report["summary"]["each placement"]
+    names = [row["placement"] for row in rows]
     assert names == [
         "true lamps",
         "true placement",
@@ -39,8 +40,13 @@ def test_runs_on_the_micro_data(micro_shards, tmp_path):
         "training rooms' mean",
         "from the photo, seed 0",
     ]
-    for row in report["summary"]:
+    for row in rows:
         assert math.isfinite(row["surface nMSE"])
+    # a paired difference is the difference of the pooled nMSEs (same views, same energy)
+    nmse = {row["placement"]: row["surface nMSE"] for row in rows}
+    d = report["differences"]["surf: uniform over the ceiling - training rooms' mean"]
+    expected = nmse["uniform over the ceiling"] - nmse["training rooms' mean"]
+    assert d["diff"] == pytest.approx(expected, rel=1e-6, abs=1e-9)
     uniform = report["placement"]["uniform over the ceiling"]
     assert uniform["cross_entropy"] == pytest.approx(math.log(4))  # 4 cells
     lp.plot(report, tmp_path / "l.png")
