@@ -287,17 +287,8 @@ def network_system(light_net, material=None):
     from pipeline.models.export import LIGHT_FORMAT, read_export
     from pipeline.models.material_net import load_material_export
 
-    blob = read_export(light_net, LIGHT_FORMAT)
-    if material is None:
-        from pipeline.models.export import build_from_export
-        from pipeline.models.light_net import LightNet
-        from pipeline.systems.lighting import LightingSystem
-
-        render = {"estimator": "importance", "spp": 8, "eval_spp": 16, "seed": 0}
-        system = LightingSystem(light_net=blob["light_net"], material=None, render=render, gbuffers="ground_truth")
-        system.net = build_from_export(light_net, LightNet, blob["light_net"], blob["state_dict"])
-        return system.eval()
-    return system_from_export(light_net, blob, load_material_export(material)[1])
+    maps = None if material is None else load_material_export(material)[1]
+    return system_from_export(light_net, read_export(light_net, LIGHT_FORMAT), maps)
 
 
 def summarise(rows: list[dict]) -> list[dict]:

@@ -235,17 +235,18 @@ class _CountingLightNet(LightNet):
         return out
 
 
-def system_from_export(path, blob: dict, material: dict, net_cls=LightNet, **overrides):
+def system_from_export(path, blob: dict, material: dict | None, net_cls=LightNet, **overrides):
     """A LightingSystem in eval mode holding the LightNet exported at `path` (its export dict `blob`, its
     options updated by `overrides`, built as `net_cls`; a mismatch is refused naming the file) on the
-    frozen MaterialNet's G-buffers (`material`), with the render settings of conf/render/importance.yaml:
-    the model as `train_lighting` tests it."""
+    frozen MaterialNet's G-buffers (`material`; None: the views' ground-truth G-buffers), with the render
+    settings of conf/render/importance.yaml: the model as `train_lighting` tests it."""
     from pipeline.models.export import build_from_export
     from pipeline.systems.lighting import LightingSystem
 
     cfg = {**blob["light_net"], **overrides}
     render = {"estimator": "importance", "spp": 8, "eval_spp": 16, "seed": 0}  # conf/render/importance.yaml
-    system = LightingSystem(light_net=cfg, material=material, render=render, gbuffers="predicted")
+    gbuffers = "ground_truth" if material is None else "predicted"
+    system = LightingSystem(light_net=cfg, material=material, render=render, gbuffers=gbuffers)
     system.net = build_from_export(path, net_cls, cfg, blob["state_dict"])
     return system.eval()
 
