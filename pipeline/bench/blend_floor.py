@@ -28,7 +28,7 @@ from matplotlib.figure import Figure
 from tqdm import tqdm
 
 from pipeline.bench.common import add_threads_option, apply_threads, publish
-from pipeline.bench.light_energy import RAY_CLASSES, EnergyTally
+from pipeline.bench.light_energy import RAY_CLASSES, EnergyTally, class_parts
 from pipeline.data.lighting import probe_rays
 from pipeline.models.light_net import confidence, trace_views
 
@@ -77,7 +77,8 @@ def ground_truth_gbuffers(batch: dict) -> dict:
 
 def view_rays(batch: dict, gb: dict, kind: str):
     """A one-view batch's `kind` probe texels traced on G-buffers gb: the directions' origin, wi (M S, 3),
-    the image's radiance at the hit pixel (M S, 3), the texel truth (M, 3), hit and gap (M S,)."""
+    the image's radiance at the hit pixel (M S, 3), the texel truth (M, 3), hit and gap (M S,), and each
+    texel's class inputs label_hit, label_u (M,)."""
     rays = probe_rays(batch["light"], kind)
     if rays is None:
         return None
@@ -89,17 +90,51 @@ def view_rays(batch: dict, gb: dict, kind: str):
     image = batch["im"][0].clamp(min=0)
     row, col = pixel[:, 0].clamp(min=0), pixel[:, 1].clamp(min=0)
     local = torch.where(hit.unsqueeze(-1), image[:, row, col].T, torch.zeros(M * S, 3))
+    gap = gap.double()
     return {
+        # the metric's texel classes: most directions hit, their mean confidence at LABEL_K
+        "label_hit": hit.view(M, S).float().mean(1) > 0.5,
+        "label_u": confidence(hit, gap, LABEL_K).view(M, S).mean(1),
         "pixel": pixel,
         "origin": origin,
         "direction": direction,
         "local": local.double(),
         "truth": rays.radiance.double(),
         "hit": hit,
-        "gap": gap.double(),
+        "gap": gap,
         "M": M,
         "S": S,
     }
+
+
+def probe_mean_directions(batch: dict, kind: str, r: dict) -> torch.Tensor:
+    """Each direction of `view_rays` at its probe's true mean radiance, (M S, 3) float64 (the rays run
+    probe by probe, texel by texel: a mismatch with the view's probes is refused)."""
+    P, T = batch["light"][0].kind(kind).texels()[1].shape[:2]
+    if P * T != r["M"]:
+        raise RuntimeError(f"{kind} probes: {P} x {T} texels against {r['M']} rays (probe_rays' order changed?)")
+    return r["truth"].view(P, T, 3).mean(1).repeat_interleave(T * r["S"], 0)
+
+
+def score_directions(tally: EnergyTally, r: dict, pred: torch.Tensor) -> torch.Tensor:
+    """Add a prediction per direction (M S, 3) of `view_rays` to `tally` as texel means against the truth,
+    under the metric's texel classes; returns the texel means (M, 3)."""
+    texels = pred.view(r["M"], r["S"], 3).mean(1)
+    tally.add(texels[None], r["truth"][None], r["label_hit"][None], r["label_u"][None])
+    return texels
+
+
+def kind_scores(by_kind: dict) -> dict:
+    """{kind: {"nmse", "classes": {class: its nMSE contribution}}} of the tallies that hold texels."""
+    out = {}
+    for kind, t in by_kind.items():
+        if t.sums:
+            s = t.summary()
+            out[kind] = {
+                "nmse": s["nmse"]["lightnet"],
+                "classes": {c: s["classes"][c]["nmse_contribution"] for c in RAY_CLASSES},
+            }
+    return out
 
 
 CONTINUE_STEP_M = 0.025  # metres between the points a continued ray is tested at behind an occluder
@@ -217,7 +252,6 @@ def run(
         table = [(f"local {a}, out {b}", k, t, a, b, False) for a, b in SOURCE_PAIRS]
         if continue_behind:
             table.append(("local network, out network, uncertain hits continued", k, t, "network", "network", True))
-    rules = [(name, k, t) for name, k, t, *_ in table]
     tallies = {name: {kind: EnergyTally() for kind in KINDS} for name, *_ in table}
     continued_share = [0, 0]
     for batch in tqdm(DataLoader(Subset(train, range(views)), 1, collate_fn=collate_views), total=views, desc="views"):
@@ -226,11 +260,11 @@ def run(
             r = view_rays(batch, gb, kind)
             if r is None:
                 continue
-            M, S = r["M"], r["S"]
-            P = len(batch["light"][0].kind(kind).texels()[1])
             local = {"image": r["local"]}
-            out = {"truth": r["truth"].repeat_interleave(S, 0)}
-            out["probe mean"] = r["truth"].view(P, M // P, 3).mean(1).repeat_interleave(M // P * S, 0)
+            out = {
+                "truth": r["truth"].repeat_interleave(r["S"], 0),
+                "probe mean": probe_mean_directions(batch, kind, r),
+            }
             if system is not None:
                 net = network_sources(system, batch, gb, r)
                 local["network"], out["network"] = net["local"], net["out"]
@@ -239,32 +273,18 @@ def run(
                 uncertain = r["hit"] & (confidence(r["hit"], r["gap"], LABEL_K) >= 0.5)
                 continued_share[0] += int(torch.isfinite(continued[:, 0]).sum())
                 continued_share[1] += int(uncertain.sum())
-            label_u = confidence(r["hit"], r["gap"], LABEL_K).view(M, S).mean(1)
-            label_hit = r["hit"].view(M, S).float().mean(1) > 0.5
             for name, k, t, a, b, cont in table:
                 pred = blended(local[a], out[b], r["hit"], r["gap"], k, t)
                 if cont:
                     pred = torch.where(torch.isfinite(continued[:, :1]), continued, pred)
-                pred = pred.view(M, S, 3).mean(1)
-                tallies[name][kind].add(pred[None], r["truth"][None], label_hit[None], label_u[None])
+                score_directions(tallies[name][kind], r, pred)
     rows = []
-    for name, k, t in rules:
+    for name, k, t, *_ in table:
         row = {"rule": name, "k": k, "out_threshold": t}
         for kind in KINDS:
-            if not tallies[name][kind].sums:
-                continue
-            s = tallies[name][kind].summary()
-            row[kind] = {
-                "nmse": s["nmse"]["lightnet"],
-                "classes": {
-                    c: {
-                        "nmse_contribution": s["classes"][c]["nmse_contribution"],
-                        "ray_fraction": s["classes"][c]["ray_fraction"],
-                        "predicted_over_true_energy": s["classes"][c]["predicted_over_true_energy"],
-                    }
-                    for c in RAY_CLASSES
-                },
-            }
+            if tallies[name][kind].sums:
+                s = tallies[name][kind].summary()
+                row[kind] = {"nmse": s["nmse"]["lightnet"], "classes": class_parts(s)}
         rows.append(row)
     return {
         "data_dir": str(data_dir),

@@ -34,12 +34,11 @@ from torch import nn
 from torch.nn import functional as F
 from tqdm import tqdm
 
-from pipeline.bench.blend_floor import KINDS, LABEL_K, blended, ground_truth_gbuffers, view_rays
+from pipeline.bench.blend_floor import KINDS, blended, ground_truth_gbuffers, kind_scores, score_directions, view_rays
 from pipeline.bench.common import add_threads_option, apply_threads, publish
-from pipeline.bench.light_energy import RAY_CLASSES, EnergyTally
+from pipeline.bench.light_energy import EnergyTally
 from pipeline.bench.roombox_floor import true_box
 from pipeline.bench.visible_light import THRESHOLD, K, box_texels, lamp_radiance, room_lamps
-from pipeline.models.light_net import confidence
 
 CEILING = 3  # face index of the box's ceiling (ops.roombox.FACES)
 SUB = 4  # sub-points per cell side when measuring a lamp's cover
@@ -152,9 +151,10 @@ def placement_scores(pred: torch.Tensor, target: torch.Tensor) -> dict:
 
 
 @torch.no_grad()
-def light_scores(test, source_root: Path, grid: int, placements: dict) -> dict:
+def light_scores(test, source_root: Path, grid: int, placements: dict) -> tuple[dict, dict]:
     """Per placement (name -> (N, grid * grid) distributions over the test views), the surface and free
-    nMSE and class parts of the light with the lamps' radiance spread by that placement (module docstring)."""
+    nMSE and class parts of the light with the lamps' radiance spread by that placement (module docstring),
+    and per kind the test views' summed squared errors and energies (for `paired_differences`)."""
     from torch.utils.data import DataLoader
 
     from pipeline.data.datasets import collate_views
@@ -189,24 +189,12 @@ def light_scores(test, source_root: Path, grid: int, placements: dict) -> dict:
             for name, dist in placements.items():
                 spread = dist[i][:, None].double() * total[None]  # (grid * grid, 3)
                 out[name] = torch.where(ceiling[:, None], spread[cell] + rest, rest)
-            label_u = confidence(r["hit"], r["gap"], LABEL_K).view(r["M"], r["S"]).mean(1)
-            label_hit = r["hit"].view(r["M"], r["S"]).float().mean(1) > 0.5
             per_view[kind]["energy"].append(float((r["truth"] ** 2).sum()))
             for name, o in out.items():
-                pred = blended(r["local"], o, r["hit"], r["gap"], K, THRESHOLD).view(r["M"], r["S"], 3).mean(1)
-                tallies[name][kind].add(pred[None], r["truth"][None], label_hit[None], label_u[None])
-                per_view[kind][name].append(float(((pred - r["truth"]) ** 2).sum()))
-    rows = {}
-    for name, by_kind in tallies.items():
-        rows[name] = {}
-        for kind, t in by_kind.items():
-            if t.sums:
-                s = t.summary()
-                rows[name][kind] = {
-                    "nmse": s["nmse"]["lightnet"],
-                    "classes": {c: s["classes"][c]["nmse_contribution"] for c in RAY_CLASSES},
-                }
-    return rows, per_view
+                pred = blended(r["local"], o, r["hit"], r["gap"], K, THRESHOLD)
+                texels = score_directions(tallies[name][kind], r, pred)
+                per_view[kind][name].append(float(((texels - r["truth"]) ** 2).sum()))
+    return {name: kind_scores(by_kind) for name, by_kind in tallies.items()}, per_view
 
 
 def paired_differences(per_view: dict, reference: str) -> dict:

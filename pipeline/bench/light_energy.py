@@ -72,6 +72,14 @@ def predictor_errors(pred: torch.Tensor, target: torch.Tensor) -> dict[str, torc
     return {name: ((c - target) ** 2).sum() for name, c in candidates.items()}
 
 
+CLASS_FIELDS = ("nmse_contribution", "predicted_over_true_energy", "ray_fraction")
+
+
+def class_parts(summary: dict, fields=CLASS_FIELDS) -> dict:
+    """{class: {field: value}} of an `EnergyTally.summary` for every ray class, the fields given."""
+    return {c: {f: summary["classes"][c][f] for f in fields} for c in RAY_CLASSES}
+
+
 class EnergyTally:
     """Running sums over views of one probe kind: the split, the predictors' errors, and per ray class the
     predicted and true radiance sums, the squared error and the terms of its best gain (the classes

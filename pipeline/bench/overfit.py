@@ -51,7 +51,7 @@ from pipeline.bench.common import (
     publish,
     training_system,
 )
-from pipeline.bench.light_energy import RAY_CLASSES, tally_batches
+from pipeline.bench.light_energy import class_parts, tally_batches
 
 KINDS = ("surf", "free")
 NETWORKS = ("light", "material")
@@ -127,14 +127,7 @@ def evaluate(system, plain) -> dict:
             "oracle_nmse": s["nmse"]["probe_mean_oracle"],
             "energy_part": s["lightnet_energy_part"],
             "placement_part": s["lightnet_placement_part"],
-            "classes": {
-                c: {
-                    "nmse_contribution": s["classes"][c]["nmse_contribution"],
-                    "predicted_over_true_energy": s["classes"][c]["predicted_over_true_energy"],
-                    "ray_fraction": s["classes"][c]["ray_fraction"],
-                }
-                for c in RAY_CLASSES
-            },
+            "classes": class_parts(s),
         }
     psnr = [system.evaluate_batch(b)["render_psnr"] for b in plain]
     out["render_psnr"] = sum(psnr) / len(psnr)

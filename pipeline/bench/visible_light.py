@@ -42,16 +42,18 @@ from tqdm import tqdm
 
 from pipeline.bench.blend_floor import (
     KINDS,
-    LABEL_K,
     blended,
     ground_truth_gbuffers,
+    kind_scores,
     network_sources,
     network_system,
     plot_class_parts,
+    probe_mean_directions,
+    score_directions,
     view_rays,
 )
 from pipeline.bench.common import add_threads_option, apply_threads, publish
-from pipeline.bench.light_energy import RAY_CLASSES, EnergyTally
+from pipeline.bench.light_energy import EnergyTally
 from pipeline.bench.roombox_floor import estimated_box, true_box
 from pipeline.models.light_net import confidence
 from pipeline.ops.roombox import exit_face, observed_textures
@@ -118,56 +120,54 @@ def lamp_radiance(lamps: dict, origin: torch.Tensor, direction: torch.Tensor):
     return radiance, met
 
 
-def seen_lookup(batch: dict, gb: dict, box, origin: torch.Tensor, direction: torch.Tensor, size: int):
-    """Where directions (N, 3) from origins (N, 3), view space, leave `box` (rotation (3, 3), lo, hi (3,)):
-    the observed radiance there (N, 3) and whether the camera saw that texel (N,) bool (nearest texel)."""
+def observed(batch: dict, gb: dict, box, size: int) -> tuple[torch.Tensor, torch.Tensor]:
+    """What the camera saw of `box` (rotation (3, 3), lo, hi (3,)): per flat texel of its six size x size
+    faces the observed radiance (6 size^2, 3) and the pixel count (6 size^2,) (`observed_textures`)."""
     rot, lo, hi = (t.double() for t in box)
     image = batch["im"].double().clamp(min=0)
+    fov = float(batch["fov_x_deg"][0])
     obs, count = observed_textures(
-        image,
-        gb["depth"].double(),
-        float(batch["fov_x_deg"][0]),
-        rot[None],
-        lo[None],
-        hi[None],
-        size,
-        gb["normal"].double(),
+        image, gb["depth"].double(), fov, rot[None], lo[None], hi[None], size, gb["normal"].double()
     )
+    return obs[0].permute(0, 2, 3, 1).reshape(-1, 3), count[0].reshape(-1)
+
+
+def seen_lookup(seen: tuple, box, origin: torch.Tensor, direction: torch.Tensor, size: int):
+    """Where directions (N, 3) from origins (N, 3), view space, leave `box`: the observed radiance there
+    (N, 3) and whether the camera saw that texel (N,) bool (nearest texel); `seen` is `observed`'s pair."""
     flat = box_texels(box, origin, direction, size)
-    values = obs[0].permute(0, 2, 3, 1).reshape(-1, 3)[flat]
-    seen = count[0].reshape(-1)[flat] > 0
-    return values, seen
+    return seen[0][flat], seen[1][flat] > 0
 
 
-def out_sources(batch: dict, gb: dict, r: dict, kind: str, boxes: dict, ladder: dict, lamps=None) -> dict:
+def out_sources(batch: dict, r: dict, kind: str, boxes: dict, seen: dict, ladder: dict, lamps=None):
     """Every out-of-view source of the module's rows at the directions of `view_rays`, (M S, 3) float64;
-    `ladder`: per grid size, the view's texel means on the true box (`texel_means`)."""
-    M, S = r["M"], r["S"]
+    `seen`: per box what the camera saw of it (`observed`); `ladder`: per grid size, the view's texel
+    means on the true box (`texel_means`). Returns the sources, per box whether each direction's texel
+    was seen (M S,), and the true lamps' (radiance, met) per direction (None without lamps)."""
+    S = r["S"]
     P, T = batch["light"][0].kind(kind).texels()[1].shape[:2]
-    if P * T != M:
-        raise RuntimeError(f"{kind} probes: {P} x {T} texels against {M} rays (probe_rays' order changed?)")
     truth = r["truth"].repeat_interleave(S, 0)
-    probe_mean = r["truth"].view(P, T, 3).mean(1).repeat_interleave(T * S, 0)
+    probe_mean = probe_mean_directions(batch, kind, r)
     image_mean = batch["im"][0].double().clamp(min=0).mean((1, 2)).expand_as(truth)
     out = {"truth": truth, "probe mean": probe_mean}
+    was_seen = {}
     for name, box in boxes.items():
-        values, seen = seen_lookup(batch, gb, box, r["origin"], r["direction"], TEXTURE_SIZE)
-        out[f"seen, {name}, unseen at the image mean"] = torch.where(seen[:, None], values, image_mean)
-        out[f"seen, {name}, unseen at the probe mean"] = torch.where(seen[:, None], values, probe_mean)
-        out[f"{name}: share of out-of-view directions seen"] = seen
+        values, was_seen[name] = seen_lookup(seen[name], box, r["origin"], r["direction"], TEXTURE_SIZE)
+        out[f"seen, {name}, unseen at the image mean"] = torch.where(was_seen[name][:, None], values, image_mean)
+        out[f"seen, {name}, unseen at the probe mean"] = torch.where(was_seen[name][:, None], values, probe_mean)
+    lamp_hits = None
     if lamps is not None:
-        glow, met = lamp_radiance(lamps, r["origin"], r["direction"])
-        dark = ~met.view(P, T * S).view(P, T, S).any(-1)  # texels that see no lamp
+        glow, met = lamp_hits = lamp_radiance(lamps, r["origin"], r["direction"])
+        dark = ~met.view(P, T, S).any(-1)  # texels that see no lamp
         rest = (r["truth"].view(P, T, 3) * dark[..., None]).sum(1) / dark.sum(1).clamp(min=1)[:, None]
         rest = rest.repeat_interleave(T * S, 0)
         out["true lamps, the rest at the probe's mean (oracle)"] = torch.where(met[:, None], glow, rest)
         out["true lamps, the rest at the image mean"] = torch.where(met[:, None], glow, image_mean)
-        out["lamp texels: truth over lamp radiance"] = (glow, met)
     for size, means in ladder.items():
         out[f"true box, {size} x {size} per face (oracle)"] = means[
             box_texels(boxes["true box"], r["origin"], r["direction"], size)
         ]
-    return out
+    return out, was_seen, lamp_hits
 
 
 @torch.no_grad()
@@ -205,38 +205,25 @@ def run(data_dir="outputs/preprocess", split="test", views=None, light_net=None)
             radiance = torch.cat([r["truth"].repeat_interleave(r["S"], 0) for r in traced.values()])
             ladder[size] = texel_means(index, radiance, 6 * size * size)
         lamps = room_lamps(source_root, item_id)
+        seen = {name: observed(batch, gb, box, TEXTURE_SIZE) for name, box in boxes.items()}  # once per view
         for kind, r in traced.items():
-            sources = out_sources(batch, gb, r, kind, boxes, ladder, lamps)
-            if lamps is not None:  # the lamps' units against the probes': texels wholly on a lamp
-                glow, met = sources.pop("lamp texels: truth over lamp radiance")
+            sources, was_seen, lamp_hits = out_sources(batch, r, kind, boxes, seen, ladder, lamps)
+            if lamp_hits is not None:  # the lamps' units against the probes': texels wholly on a lamp
+                glow, met = lamp_hits
                 full = met.view(r["M"], r["S"]).all(1)
                 if full.any():
                     lamp_mean = glow.view(r["M"], r["S"], 3).mean(1)[full].mean(1)
                     lamp_ratio.extend((r["truth"][full].mean(1) / lamp_mean).tolist())
             if system is not None:
                 sources["network"] = network_sources(system, batch, gb, r)["out"]
-            miss = (~r["hit"]) | (confidence(r["hit"], r["gap"], K) >= THRESHOLD)
+            out_of_view = (~r["hit"]) | (confidence(r["hit"], r["gap"], K) >= THRESHOLD)  # what the branch answers
             for name in BOXES:
-                seen = sources.pop(f"{name}: share of out-of-view directions seen")
-                seen_counts[name][0] += int((seen & miss).sum())
-                seen_counts[name][1] += int(miss.sum())
-            label_u = confidence(r["hit"], r["gap"], LABEL_K).view(r["M"], r["S"]).mean(1)
-            label_hit = r["hit"].view(r["M"], r["S"]).float().mean(1) > 0.5
+                seen_counts[name][0] += int((was_seen[name] & out_of_view).sum())
+                seen_counts[name][1] += int(out_of_view.sum())
             for name, out in sources.items():
-                pred = blended(r["local"], out, r["hit"], r["gap"], K, THRESHOLD).view(r["M"], r["S"], 3).mean(1)
                 tally = tallies.setdefault(name, {k: EnergyTally() for k in KINDS})
-                tally[kind].add(pred[None], r["truth"][None], label_hit[None], label_u[None])
-    rows = []
-    for name, by_kind in tallies.items():
-        row = {"source": name}
-        for kind, t in by_kind.items():
-            if t.sums:
-                s = t.summary()
-                row[kind] = {
-                    "nmse": s["nmse"]["lightnet"],
-                    "classes": {c: s["classes"][c]["nmse_contribution"] for c in RAY_CLASSES},
-                }
-        rows.append(row)
+                score_directions(tally[kind], r, blended(r["local"], out, r["hit"], r["gap"], K, THRESHOLD))
+    rows = [{"source": name, **kind_scores(by_kind)} for name, by_kind in tallies.items()]
     seen_share = {name: c[0] / max(c[1], 1) for name, c in seen_counts.items()}
     return {
         "data_dir": str(data_dir),
