@@ -141,12 +141,21 @@ def test_light_net_has_the_released_parameter_counts():
     assert _count(net) == 2 * encoder + released_local_mlp(d) + 216_628_100
 
 
+@pytest.fixture
+def paper_tmp_path(tmp_path):
+    """tmp_path whose `outputs` (about 5 GB of paper-sized weights and checkpoints) is removed whatever
+    the test's outcome: pytest keeps a failed test's tmp_path, and kept ones of this size fill a disk."""
+    yield tmp_path
+    shutil.rmtree(tmp_path / "outputs", ignore_errors=True)
+
+
 @pytest.mark.slow
-def test_paper_profile_runs_one_step_of_every_stage_on_micro_data(tmp_path):
+def test_paper_profile_runs_one_step_of_every_stage_on_micro_data(paper_tmp_path):
     """Every stage under profile=paper with only the data sizes, step counts and evaluation samples cut to
     micro: the released networks, loss and optimiser all run on a CPU. (The evaluation's 1024 spp is the
     profile's, checked by the method table; at micro sizes it only multiplies the paper local MLP's
     evaluations, the render layer's chunking is tested on its own.)"""
+    tmp_path = paper_tmp_path
     from stages import evaluate, finetune, preprocess, synthesize, train_lighting, train_material
 
     common = [
@@ -203,4 +212,3 @@ def test_paper_profile_runs_one_step_of_every_stage_on_micro_data(tmp_path):
     assert np.isfinite(ev["finetuned/synthetic/normal_angle_deg"])
     assert np.isfinite(ev["trained/synthetic_ood/gate/mean_material/roughness_mse"])
     assert np.isfinite(ev["lightnet/synthetic_ood/render_psnr"])
-    shutil.rmtree(tmp_path / "outputs")  # about 5 GB of paper-sized weights and checkpoints: free the disk now
