@@ -152,8 +152,9 @@ def placement_scores(pred: torch.Tensor, target: torch.Tensor) -> dict:
 
 @torch.no_grad()
 def light_scores(test, source_root: Path, grid: int, placements: dict) -> tuple[dict, dict]:
-    """Per placement (name -> (N, grid * grid) distributions over the test views), the surface and free
-    nMSE and class parts of the light with the lamps' radiance spread by that placement (module docstring),
+    """Per placement (name -> (N, grid * grid) distributions over the test views, or (N, grid * grid, 3)
+    radiance per cell), the surface and free nMSE and class parts of the light with the lamps' radiance
+    spread by that placement (module docstring; a radiance placement stands for itself),
     and per kind the test views' summed squared errors and energies (for `paired_differences`)."""
     from torch.utils.data import DataLoader
 
@@ -186,8 +187,11 @@ def light_scores(test, source_root: Path, grid: int, placements: dict) -> tuple[
             else:
                 out["true lamps"] = rest
             out["true placement"] = torch.where(ceiling[:, None], cells.reshape(-1, 3)[cell] + rest, rest)
-            for name, dist in placements.items():
-                spread = dist[i][:, None].double() * total[None]  # (grid * grid, 3)
+            for name, placed in placements.items():
+                if placed.dim() == 3:  # the placement's own radiance per cell
+                    spread = placed[i].double()
+                else:  # a distribution: the true lamp total spread by it
+                    spread = placed[i][:, None].double() * total[None]  # (grid * grid, 3)
                 out[name] = torch.where(ceiling[:, None], spread[cell] + rest, rest)
             per_view[kind]["energy"].append(float((r["truth"] ** 2).sum()))
             for name, o in out.items():

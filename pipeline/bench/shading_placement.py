@@ -1,0 +1,297 @@
+"""`python -m pipeline.bench.shading_placement`: does the photo's own shading place the ceiling lamps?
+
+`bench.lamp_placement` found that a CNN trained on the training rooms places the lamps barely better
+than the rooms' mean placement (surface nMSE 0.85 against 0.87; the true placement 0.46). That network
+sees the photo only as a picture. The lamps also light what the camera sees: a wall under a lamp is
+brighter than one far from it, with the falloff and cosines of a known geometry. This bench asks how
+much of the placement that shading determines, with no learning: per test view, on its ground-truth
+G-buffers (an upper bound for predicted ones), the ceiling of the true box
+(`bench.roombox_floor.true_box`) is cut into `--grid` x `--grid` cells as in `bench.lamp_placement`,
+and each visible pixel's radiance is explained as a Lambertian surface lit by every cell at its own
+unknown radiance plus one ambient term:
+
+    L_p = albedo_p / pi * sum_c w_c E_pc + albedo_p * b,    w_c >= 0, b >= 0 (per RGB channel)
+
+where E_pc is the irradiance (W m^-2 per unit radiance) the cell would cast on the pixel's point and
+normal (`irradiance_matrix`: the cell cut into `--sub` x `--sub` patches, each a small area light with
+both cosines and the inverse square; occlusion ignored). The weights are solved by non-negative least
+squares (`fit_view`) on up to `--pixels` pixels (metallic ones, dark albedo and the ceiling itself, which
+no ceiling lamp lights, left out), refitted once without the `--trim` share of pixels the model
+explains worst (specular highlights of glossy surfaces, shadows of furniture).
+
+Scored as `bench.lamp_placement` scores its placements (tiny's blend with the image's pixel as the local
+source, ceiling directions at the placement's cell plus the photo's mean, the rest at the photo's mean):
+the fit as a placement with the true lamp energy spread by it (placement scored alone, comparable with
+the CNN's rows) and the fit's own radiances (nothing true but the geometry), paired by view against
+the training rooms' mean placement with a bootstrap interval. Writes reports/bench/shading_placement.json
+(or `--name`) and a PNG of the light errors and the first views' true and fitted ceilings.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+from pathlib import Path
+
+import numpy as np
+import torch
+from matplotlib.figure import Figure
+from tqdm import tqdm
+
+from pipeline.bench.blend_floor import KINDS
+from pipeline.bench.common import add_threads_option, apply_threads, publish
+from pipeline.bench.lamp_placement import (
+    ceiling_lamps,
+    distribution,
+    light_scores,
+    luminance,
+    paired_differences,
+    placement_scores,
+)
+from pipeline.bench.roombox_floor import true_box
+from pipeline.bench.visible_light import room_lamps
+from pipeline.ops.camera import backproject_views
+
+CEILING_CLEARANCE_M = 0.05  # points this close below the ceiling are the ceiling (no ceiling lamp lights them)
+MIN_ALBEDO = 0.02  # darker pixels carry almost no shading signal
+MAX_METALLIC = 0.5  # metals reflect, they do not shade
+
+
+def ceiling_patches(box, grid: int, sub: int) -> tuple[torch.Tensor, float]:
+    """Centres (grid * grid, sub * sub, 3) of the patches of each ceiling cell, box frame (cells row-major:
+    rows along the box's z, columns along its x, as `lamp_placement.ceiling_lamps`), and one patch's area
+    (m^2), float64."""
+    _, lo, hi = (t.double() for t in box)
+    n = grid * sub
+    x = lo[0] + (torch.arange(n, dtype=torch.float64) + 0.5) / n * (hi[0] - lo[0])
+    z = lo[2] + (torch.arange(n, dtype=torch.float64) + 0.5) / n * (hi[2] - lo[2])
+    zz, xx = torch.meshgrid(z, x, indexing="ij")
+    q = torch.stack([xx, torch.full_like(xx, float(hi[1])), zz], -1)  # (n, n, 3)
+    q = q.view(grid, sub, grid, sub, 3).permute(0, 2, 1, 3, 4).reshape(grid * grid, sub * sub, 3)
+    area = float((hi[0] - lo[0]) * (hi[2] - lo[2])) / (n * n)
+    return q, area
+
+
+def irradiance_matrix(points: torch.Tensor, normals: torch.Tensor, box, grid: int, sub: int) -> torch.Tensor:
+    """(P, grid * grid) irradiance (W m^-2) at points (P, 3) with unit normals (P, 3), both in the box
+    frame, from each ceiling cell emitting unit radiance downwards: the sum over its patches of
+    A cos(theta_surface) cos(theta_lamp) / r^2 (each patch a small area light; no occlusion), float64."""
+    centres, area = ceiling_patches(box, grid, sub)
+    d = centres[None] - points[:, None, None]  # (P, C, S, 3) towards the patch
+    r2 = (d**2).sum(-1).clamp(min=1e-6)
+    r = r2.sqrt()
+    cos_surface = ((d * normals[:, None, None]).sum(-1) / r).clamp(min=0)
+    cos_lamp = (d[..., 1] / r).clamp(min=0)  # the patch faces -y (down): cos = (y_lamp - y_point) / r
+    return (area * cos_surface * cos_lamp / r2).sum(-1)
+
+
+def shading_pixels(item: dict, box, pixels: int, seed: int) -> dict:
+    """The pixels a view's fit uses (module docstring) with their box-frame point and normal (P, 3),
+    albedo and radiance (P, 3), float64; at most `pixels`, drawn without replacement by `seed`."""
+    rot = box[0].double()
+    depth = item["depth"][0].double()
+    valid = item["mask"][0].bool() & (depth > 0)
+    points = backproject_views(torch.where(valid, depth, torch.zeros_like(depth))[None], float(item["fov_x_deg"]))[0]
+    q = points.reshape(-1, 3) @ rot
+    n = item["normal"].double().permute(1, 2, 0).reshape(-1, 3) @ rot
+    albedo = item["albedo"].double().permute(1, 2, 0).reshape(-1, 3)
+    radiance = item["im"].double().clamp(min=0).permute(1, 2, 0).reshape(-1, 3)
+    metallic = item["material"][1].double().reshape(-1)
+    keep = (
+        valid.reshape(-1)
+        & (metallic < MAX_METALLIC)
+        & (luminance(albedo) > MIN_ALBEDO)
+        & (q[:, 1] < float(box[2][1]) - CEILING_CLEARANCE_M)
+    )
+    index = torch.nonzero(keep).squeeze(-1)
+    if len(index) > pixels:
+        g = torch.Generator().manual_seed(seed)
+        index = index[torch.randperm(len(index), generator=g)[:pixels]]
+    return {"point": q[index], "normal": n[index], "albedo": albedo[index], "radiance": radiance[index]}
+
+
+def _nnls(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    from scipy.optimize import nnls
+
+    scale = np.linalg.norm(a, axis=0)
+    scale[scale == 0] = 1.0
+    x, _ = nnls(a / scale, b, maxiter=50 * a.shape[1])
+    return x / scale
+
+
+def fit_view(px: dict, box, grid: int, sub: int, trim: float) -> dict:
+    """Per-cell radiance (grid * grid, 3) and ambient radiance b (3,) explaining the pixels `px` (module
+    docstring), each RGB channel its own non-negative least squares; refitted once without the `trim`
+    share of pixels with the largest absolute residual. Also the relative residual of the kept pixels."""
+    E = irradiance_matrix(px["point"], px["normal"], box, grid, sub).numpy()  # (P, C)
+    albedo, radiance = px["albedo"].numpy(), px["radiance"].numpy()
+    cells = np.zeros((E.shape[1], 3))
+    ambient = np.zeros(3)
+    keep = np.ones(len(E), bool)
+    for attempt in range(2 if trim > 0 else 1):
+        residual = np.zeros_like(radiance)
+        for c in range(3):
+            a = np.concatenate([albedo[:, c : c + 1] / math.pi * E, albedo[:, c : c + 1]], 1)
+            x = _nnls(a[keep], radiance[keep, c])
+            cells[:, c], ambient[c] = x[:-1], x[-1]
+            residual[:, c] = a @ x - radiance[:, c]
+        if attempt == 0 and trim > 0:
+            err = np.abs(residual).sum(1)
+            keep = err <= np.quantile(err, 1 - trim)
+    rel = float(np.sqrt((residual[keep] ** 2).sum() / max((radiance[keep] ** 2).sum(), 1e-30)))
+    return {
+        "cells": torch.from_numpy(cells),
+        "ambient": torch.from_numpy(ambient),
+        "relative_residual": rel,
+        "pixels": int(keep.sum()),
+    }
+
+
+def training_mean_placement(data_dir: Path, source_root: Path, grid: int) -> torch.Tensor:
+    """(1, grid * grid) mean lamp placement (`lamp_placement.distribution`) over the training views, from
+    their room files and cameras alone."""
+    from pipeline.data.datasets import read_manifest
+
+    ids = read_manifest(data_dir)["splits"]["train"]["views"]
+    if not ids:
+        raise ValueError(f"{data_dir}/manifest.json: the train split is empty")
+    cells = torch.stack(
+        [ceiling_lamps(room_lamps(source_root, i), true_box(source_root, i), grid) for i in tqdm(ids, desc="train")]
+    )
+    return distribution(cells).mean(0, keepdim=True)
+
+
+def run(data_dir="outputs/preprocess", grid=8, sub=4, pixels=4000, trim=0.02, seed=0, views=None) -> dict:
+    from torch.utils.data import Subset
+
+    from pipeline.data.datasets import ShardDataset
+
+    data_dir = Path(data_dir)
+    manifest = json.loads((data_dir / "manifest.json").read_text())
+    source_root = Path(manifest["source_root"])
+    if not source_root.is_dir():
+        raise FileNotFoundError(f"{data_dir}/manifest.json: source_root {source_root} (the room files) is missing")
+    if grid < 1 or sub < 1 or pixels < grid * grid + 1 or not 0 <= trim < 0.5:
+        raise ValueError(
+            f"--grid {grid}, --sub {sub}, --pixels {pixels}, --trim {trim}: need grid >= 1, sub >= 1, "
+            "pixels > grid^2 and 0 <= trim < 0.5"
+        )
+    test = ShardDataset(data_dir, "test", lighting=True)
+    if views is not None:
+        test = Subset(test, list(range(min(views, len(test)))))
+    if len(test) == 0:
+        raise ValueError(f"{data_dir}: the test split holds no view")
+    mean_prior = training_mean_placement(data_dir, source_root, grid)
+    true_cells, fitted, ambient, residuals, used = [], [], [], [], []
+    for i in tqdm(range(len(test)), desc="shading fit"):
+        item = test[i]
+        box = true_box(source_root, item["id"])
+        true_cells.append(ceiling_lamps(room_lamps(source_root, item["id"]), box, grid).reshape(-1, 3))
+        fit = fit_view(shading_pixels(item, box, pixels, seed + i), box, grid, sub, trim)
+        fitted.append(fit["cells"])
+        ambient.append(fit["ambient"])
+        residuals.append(fit["relative_residual"])
+        used.append(fit["pixels"])
+    true_cells, fitted = torch.stack(true_cells), torch.stack(fitted)
+    target = distribution(true_cells.view(-1, grid, grid, 3))
+    fitted_placement = distribution(fitted.view(-1, grid, grid, 3))
+    placements = {
+        "uniform over the ceiling": torch.full_like(target, 1 / target.shape[1]),
+        "training rooms' mean": mean_prior.expand_as(target),
+        "shading fit (placement, true energy)": fitted_placement,
+        "shading fit (its own radiance)": fitted,
+    }
+    true_energy = luminance(true_cells).sum(1)
+    fit_energy = luminance(fitted).sum(1)
+    has_lamps = true_energy > 0
+    report = {
+        "data_dir": str(data_dir),
+        "grid": grid,
+        "sub": sub,
+        "pixels": pixels,
+        "trim": trim,
+        "seed": seed,
+        "test_views": len(test),
+        "views_with_lamps": int(has_lamps.sum()),
+        "pixels_used": {"median": float(np.median(used)), "min": int(min(used))},
+        "relative_residual": {"median": float(np.median(residuals)), "max": float(max(residuals))},
+        "fitted_over_true_lamp_energy": {
+            "median": float(torch.median(fit_energy[has_lamps] / true_energy[has_lamps])) if has_lamps.any() else None
+        },
+        "placement": {
+            name: placement_scores(p if p.dim() == 2 else distribution(p.view(-1, grid, grid, 3)), target)
+            for name, p in placements.items()
+        },
+    }
+    report["light"], per_view = light_scores(test, source_root, grid, placements)
+    report["differences"] = paired_differences(per_view, "training rooms' mean")
+    report["summary"] = {
+        "each placement": [
+            {
+                "placement": name,
+                "surface nMSE": row.get("surf", {}).get("nmse"),
+                "free nMSE": row.get("free", {}).get("nmse"),
+                "cross-entropy (nats)": report["placement"].get(name, {}).get("cross_entropy"),
+                "share on lamp cells": report["placement"].get(name, {}).get("share_on_lamp_cells"),
+            }
+            for name, row in report["light"].items()
+        ],
+        "nMSE against the training rooms' mean placement, paired by test view (95 % bootstrap)": [
+            {"difference": name, "nMSE": d["diff"], "lo": d["lo"], "hi": d["hi"]}
+            for name, d in report["differences"].items()
+        ],
+    }
+    report["examples"] = {
+        "target": target[:4].view(-1, grid, grid).tolist(),
+        "shading fit": fitted_placement[:4].view(-1, grid, grid).tolist(),
+    }
+    return report
+
+
+def plot(report: dict, path) -> None:
+    fig = Figure(figsize=(11, 5.6))
+    names = list(report["light"])
+    ax = fig.add_subplot(2, 1, 1)
+    y = np.arange(len(names))
+    for j, kind in enumerate(KINDS):
+        vals = [report["light"][n].get(kind, {}).get("nmse", math.nan) for n in names]
+        ax.barh(y + 0.4 * j - 0.2, vals, 0.4, label=f"{kind} nMSE")
+    ax.set_yticks(y, names, fontsize=8)
+    ax.invert_yaxis()
+    ax.legend(fontsize=7)
+    ax.set_title(
+        f"light on {report['test_views']} test views, lamps placed from the visible shading "
+        f"({report['grid']} x {report['grid']} ceiling cells, ground-truth G-buffers)",
+        fontsize=9,
+    )
+    ex = report["examples"]
+    for i in range(min(4, len(ex["target"]))):
+        for j, key in enumerate(("target", "shading fit")):
+            a = fig.add_subplot(2, 8, 9 + 2 * i + j)
+            a.imshow(np.array(ex[key][i]), cmap="magma")
+            a.set_xticks([])
+            a.set_yticks([])
+            a.set_title(f"view {i}: " + ("true" if j == 0 else "fit"), fontsize=7)
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+
+
+def main(argv=None) -> None:
+    p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("--data-dir", default="outputs/preprocess")
+    p.add_argument("--grid", type=int, default=8, help="ceiling cells per side")
+    p.add_argument("--sub", type=int, default=4, help="patches per cell side in the irradiance integral")
+    p.add_argument("--pixels", type=int, default=4000, help="pixels per view in the fit (at most)")
+    p.add_argument("--trim", type=float, default=0.02, help="share of worst-explained pixels dropped in the refit")
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--views", type=int, default=None, help="the first N test views (default: all)")
+    p.add_argument("--name", default="shading_placement")
+    add_threads_option(p)
+    a = p.parse_args(argv)
+    apply_threads(a.threads)
+    print(publish(a.name, run(a.data_dir, a.grid, a.sub, a.pixels, a.trim, a.seed, a.views), plot))
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,98 @@
+"""bench.shading_placement: the irradiance a ceiling cell casts against the closed form of a rectangle's
+form factor, the fit recovers lamps from the shading they cause, and the bench runs on micro data."""
+
+import math
+
+import pytest
+import torch
+
+from pipeline.bench import shading_placement as sp
+
+
+def _corner_irradiance(a: float, b: float, h: float) -> float:
+    """Irradiance under a corner of an a x b rectangle of unit radiance at height h, parallel to the
+    receiver (pi times the classic point-to-rectangle form factor)."""
+    A, B = a / h, b / h
+    sa, sb = math.sqrt(1 + A * A), math.sqrt(1 + B * B)
+    return 0.5 * (A / sa * math.atan(B / sa) + B / sb * math.atan(A / sb))
+
+
+BOX = (torch.eye(3, dtype=torch.float64), torch.tensor([-2.0, 0.0, -1.5]), torch.tensor([2.0, 2.5, 1.5]))
+
+
+@pytest.mark.parametrize("sub", [8, 32])
+def test_a_cell_lights_a_point_as_the_closed_form_says(sub):
+    point = torch.tensor([[0.0, 0.5, 0.0]], dtype=torch.float64)  # under the ceiling's centre, 2 m below
+    up = torch.tensor([[0.0, 1.0, 0.0]], dtype=torch.float64)
+    E = sp.irradiance_matrix(point, up, BOX, 1, sub)
+    exact = 4 * _corner_irradiance(2.0, 1.5, 2.0)  # four corner rectangles of 2 m x 1.5 m
+    # the midpoint rule's error falls as 1/sub^2 (0.26 / sub^2 here): twice that is the bound
+    assert float(E[0, 0]) == pytest.approx(exact, rel=0.5 / sub**2)
+    # a surface facing away, or lying in the ceiling's plane, gets nothing
+    assert float(sp.irradiance_matrix(point, -up, BOX, 1, sub)[0, 0]) == 0.0
+    on_ceiling = torch.tensor([[0.0, 2.5, 0.0]], dtype=torch.float64)
+    assert float(sp.irradiance_matrix(on_ceiling, -up, BOX, 2, sub).abs().sum()) == 0.0
+
+
+def test_cells_are_row_major_along_z_then_x():
+    centres, area = sp.ceiling_patches(BOX, 2, 1)
+    assert area == pytest.approx(4.0 * 3.0 / 4)
+    assert centres[:, 0].tolist() == [[-1.0, 2.5, -0.75], [1.0, 2.5, -0.75], [-1.0, 2.5, 0.75], [1.0, 2.5, 0.75]]
+
+
+def test_the_fit_recovers_lamps_from_the_shading_they_cast():
+    g = torch.Generator().manual_seed(0)
+    P = 600
+    # points on the floor and the four walls of BOX, normals into the room
+    face = torch.randint(0, 5, (P,), generator=g)
+    u = torch.rand(P, 3, generator=g, dtype=torch.float64)
+    lo, hi = BOX[1], BOX[2]
+    point = lo + u * (hi - lo)
+    normal = torch.zeros(P, 3, dtype=torch.float64)
+    for f, (axis, side) in enumerate([(1, 0), (0, 0), (0, 1), (2, 0), (2, 1)]):
+        sel = face == f
+        point[sel, axis] = (lo if side == 0 else hi)[axis]
+        normal[sel, axis] = 1.0 if side == 0 else -1.0
+    point[:, 1] = point[:, 1].clamp(max=2.3)  # clear of the ceiling
+    albedo = 0.2 + 0.7 * torch.rand(P, 3, generator=g, dtype=torch.float64)
+    grid = 3
+    lamps = torch.zeros(grid * grid, 3, dtype=torch.float64)
+    lamps[1] = torch.tensor([6.0, 5.0, 4.0])
+    lamps[8] = torch.tensor([2.0, 2.0, 3.0])
+    ambient = torch.tensor([0.3, 0.2, 0.1], dtype=torch.float64)
+    E = sp.irradiance_matrix(point, normal, BOX, grid, 4)
+    radiance = albedo / math.pi * (E @ lamps) + albedo * ambient
+    px = {"point": point, "normal": normal, "albedo": albedo, "radiance": radiance}
+    fit = sp.fit_view(px, BOX, grid, 4, trim=0.0)
+    assert torch.allclose(fit["cells"], lamps, atol=1e-6 * float(lamps.max()))
+    assert torch.allclose(fit["ambient"], ambient, atol=1e-6)
+    assert fit["relative_residual"] < 1e-8 and fit["pixels"] == P
+    # a few specular highlights (radiance far above the model) are trimmed away by the refit
+    spiked = radiance.clone()
+    spiked[:6] += 50.0
+    fit = sp.fit_view({**px, "radiance": spiked}, BOX, grid, 4, trim=0.02)
+    assert fit["pixels"] == P - 12
+    assert torch.allclose(fit["cells"], lamps, atol=1e-5 * float(lamps.max()))
+
+
+def test_runs_on_the_micro_data(micro_shards, tmp_path):
+    report = sp.run(str(micro_shards), grid=2, sub=2, pixels=200)
+    names = [row["placement"] for row in report["summary"]["each placement"]]
+    assert names == [
+        "true lamps",
+        "true placement",
+        "uniform over the ceiling",
+        "training rooms' mean",
+        "shading fit (placement, true energy)",
+        "shading fit (its own radiance)",
+    ]
+    nmse = {row["placement"]: row["surface nMSE"] for row in report["summary"]["each placement"]}
+    assert all(math.isfinite(v) for v in nmse.values())
+    d = report["differences"]["surf: shading fit (placement, true energy) - training rooms' mean"]
+    expected = nmse["shading fit (placement, true energy)"] - nmse["training rooms' mean"]
+    assert d["diff"] == pytest.approx(expected, rel=1e-6, abs=1e-9)
+    assert report["pixels_used"]["min"] > 0
+    sp.plot(report, tmp_path / "s.png")
+    assert (tmp_path / "s.png").stat().st_size > 5_000
+    with pytest.raises(ValueError, match="--pixels 4"):
+        sp.run(str(micro_shards), grid=2, pixels=4)
