@@ -73,9 +73,13 @@ def test_the_fit_recovers_lamps_from_the_shading_they_cast():
     fit = sp.fit_view({**px, "radiance": spiked}, BOX, grid, 4, trim=0.02)
     assert fit["pixels"] == P - 12
     assert torch.allclose(fit["cells"], lamps, atol=1e-5 * float(lamps.max()))
+    # a view with nothing to fit places no lamp (a uniform placement) and says so
+    empty = {k: v[:0] for k, v in px.items()}
+    fit = sp.fit_view(empty, BOX, grid, 4, trim=0.02)
+    assert fit["pixels"] == 0 and float(fit["cells"].abs().sum()) == 0 and math.isnan(fit["relative_residual"])
 
 
-def test_runs_on_the_micro_data(micro_shards, tmp_path):
+def test_runs_on_the_micro_data(micro_shards, micro_exports, tmp_path):
     report = sp.run(str(micro_shards), grid=2, sub=2, pixels=200)
     names = [row["placement"] for row in report["summary"]["each placement"]]
     assert names == [
@@ -94,5 +98,12 @@ def test_runs_on_the_micro_data(micro_shards, tmp_path):
     assert report["pixels_used"]["min"] > 0
     sp.plot(report, tmp_path / "s.png")
     assert (tmp_path / "s.png").stat().st_size > 5_000
+    assert report["gbuffers"] == "ground truth"
+    # on a MaterialNet's G-buffers the fit changes, the references do not
+    predicted = sp.run(str(micro_shards), grid=2, sub=2, pixels=200, views=2, material=micro_exports / "material.pt")
+    assert predicted["gbuffers"].startswith("MaterialNet") and predicted["test_views"] == 2
+    assert 0 <= predicted["views_without_pixels"] <= 2
+    rows = {row["placement"]: row for row in predicted["summary"]["each placement"]}
+    assert all(math.isfinite(row["surface nMSE"]) for row in rows.values())
     with pytest.raises(ValueError, match="--pixels 4"):
         sp.run(str(micro_shards), grid=2, pixels=4)
