@@ -151,16 +151,20 @@ def placement_scores(pred: torch.Tensor, target: torch.Tensor) -> dict:
 
 
 @torch.no_grad()
-def light_scores(test, source_root: Path, grid: int, placements: dict) -> tuple[dict, dict]:
+def light_scores(
+    test, source_root: Path, grid: int, placements: dict, extra_names: tuple = (), extra_sources=None
+) -> tuple[dict, dict]:
     """Per placement (name -> (N, grid * grid) distributions over the test views, or (N, grid * grid, 3)
     radiance per cell), the surface and free nMSE and class parts of the light with the lamps' radiance
     spread by that placement (module docstring; a radiance placement stands for itself),
-    and per kind the test views' summed squared errors and energies (for `paired_differences`)."""
+    and per kind the test views' summed squared errors and energies (for `paired_differences`).
+    `extra_sources(i, batch, gb, r)`, when given, returns more out-of-view sources (name in `extra_names`
+    -> (M S, 3)) at the directions r of `view_rays` of test view i, scored alike."""
     from torch.utils.data import DataLoader
 
     from pipeline.data.datasets import collate_views
 
-    names = ["true lamps", "true placement", *placements]
+    names = ["true lamps", "true placement", *placements, *extra_names]
     tallies = {name: {k: EnergyTally() for k in KINDS} for name in names}
     per_view = {k: {"energy": [], **{name: [] for name in names}} for k in KINDS}  # summed squares per view
     loader = DataLoader(test, 1, collate_fn=collate_views)
@@ -193,6 +197,8 @@ def light_scores(test, source_root: Path, grid: int, placements: dict) -> tuple[
                 else:  # a distribution: the true lamp total spread by it
                     spread = placed[i][:, None].double() * total[None]  # (grid * grid, 3)
                 out[name] = torch.where(ceiling[:, None], spread[cell] + rest, rest)
+            if extra_sources is not None:
+                out.update(extra_sources(i, batch, gb, r))
             per_view[kind]["energy"].append(float((r["truth"] ** 2).sum()))
             for name, o in out.items():
                 pred = blended(r["local"], o, r["hit"], r["gap"], K, THRESHOLD)

@@ -25,8 +25,12 @@ Scored as `bench.lamp_placement` scores its placements (tiny's blend with the im
 source, ceiling directions at the placement's cell plus the photo's mean, the rest at the photo's mean):
 the fit as a placement with the true lamp energy spread by it (placement scored alone, comparable with
 the CNN's rows) and the fit's own radiances (nothing true but the geometry), paired by view against
-the training rooms' mean placement with a bootstrap interval. Writes reports/bench/shading_placement.json
-(or `--name`) and a PNG of the light errors and the first views' true and fitted ceilings.
+the training rooms' mean placement with a bootstrap interval. Then the whole out-of-view light with
+nothing true but the box (`CompleteSources`: the texels the camera saw, the fitted lamps on the unseen
+ceiling, the image's mean elsewhere), with and without the lamps, and with `--light-net` a trained
+LightNet's branch on the same directions (`blend_floor.network_sources`), each paired against it too.
+Writes reports/bench/shading_placement.json (or `--name`) and a PNG of the light errors and the first
+views' true and fitted ceilings.
 """
 
 from __future__ import annotations
@@ -41,9 +45,10 @@ import torch
 from matplotlib.figure import Figure
 from tqdm import tqdm
 
-from pipeline.bench.blend_floor import KINDS
+from pipeline.bench.blend_floor import KINDS, network_sources, network_system
 from pipeline.bench.common import add_threads_option, apply_threads, publish
 from pipeline.bench.lamp_placement import (
+    CEILING,
     ceiling_lamps,
     distribution,
     light_scores,
@@ -52,7 +57,7 @@ from pipeline.bench.lamp_placement import (
     placement_scores,
 )
 from pipeline.bench.roombox_floor import true_box
-from pipeline.bench.visible_light import room_lamps
+from pipeline.bench.visible_light import TEXTURE_SIZE, box_texels, observed, room_lamps, seen_lookup
 from pipeline.ops.camera import backproject_views
 
 CEILING_CLEARANCE_M = 0.05  # points this close below the ceiling are the ceiling (no ceiling lamp lights them)
@@ -179,6 +184,41 @@ def training_mean_placement(data_dir: Path, source_root: Path, grid: int) -> tor
     return distribution(cells).mean(0, keepdim=True)
 
 
+SEEN_ONLY = "seen texels, the rest at the image mean"
+SEEN_AND_FIT = "seen texels, shading-fit lamps, the rest at the image mean"
+NETWORK = "trained out-of-view branch"
+
+
+class CompleteSources:
+    """The out-of-view light with nothing true but the box (`lamp_placement.light_scores`' extra sources):
+    each direction that leaves the true box through a texel the camera saw takes what it saw there
+    (`visible_light.observed` on the ground-truth G-buffers, `visible_light.TEXTURE_SIZE` texels a side);
+    an unseen one through the ceiling its fitted cell's radiance plus the image's mean; any other the image's
+    mean. Beside it the same without the lamps, and a trained LightNet's branch when `system` is given."""
+
+    def __init__(self, source_root: Path, grid: int, fitted: torch.Tensor, system=None):
+        self.source_root, self.grid, self.fitted, self.system = source_root, grid, fitted, system
+        self.names = (SEEN_ONLY, SEEN_AND_FIT) + ((NETWORK,) if system is not None else ())
+        self._seen: tuple | None = None  # (view index, what the camera saw of its box)
+
+    def __call__(self, i: int, batch: dict, gb: dict, r: dict) -> dict:
+        box = true_box(self.source_root, batch["id"][0])
+        if self._seen is None or self._seen[0] != i:  # once per view, for both probe kinds
+            self._seen = (i, observed(batch, gb, box, TEXTURE_SIZE))
+        values, was_seen = seen_lookup(self._seen[1], box, r["origin"], r["direction"], TEXTURE_SIZE)
+        index = box_texels(box, r["origin"], r["direction"], self.grid)
+        ceiling = (index // (self.grid * self.grid)) == CEILING
+        image_mean = batch["im"][0].double().clamp(min=0).mean((1, 2)).expand(len(index), 3)
+        lamps = torch.where(ceiling[:, None], self.fitted[i].double()[index % (self.grid * self.grid)], 0.0)
+        out = {
+            SEEN_ONLY: torch.where(was_seen[:, None], values, image_mean),
+            SEEN_AND_FIT: torch.where(was_seen[:, None], values, image_mean + lamps),
+        }
+        if self.system is not None:
+            out[NETWORK] = network_sources(self.system, batch, self.system.gbuffers(batch), r)["out"]
+        return out
+
+
 def _finite_stat(stat, values: list[float]) -> float | None:
     """stat over the finite values (a view without pixels has none), None when there are none."""
     finite = [v for v in values if math.isfinite(v)]
@@ -186,7 +226,15 @@ def _finite_stat(stat, values: list[float]) -> float | None:
 
 
 def run(
-    data_dir="outputs/preprocess", grid=8, sub=4, pixels=4000, trim=0.02, seed=0, views=None, material=None
+    data_dir="outputs/preprocess",
+    grid=8,
+    sub=4,
+    pixels=4000,
+    trim=0.02,
+    seed=0,
+    views=None,
+    material=None,
+    light_net=None,
 ) -> dict:
     from torch.utils.data import Subset
 
@@ -258,8 +306,13 @@ def run(
             for name, p in placements.items()
         },
     }
-    report["light"], per_view = light_scores(test, source_root, grid, placements)
+    system = None if light_net is None else network_system(light_net, material)
+    complete = CompleteSources(source_root, grid, fitted, system)
+    report["light_net"] = None if light_net is None else str(light_net)
+    report["light"], per_view = light_scores(test, source_root, grid, placements, complete.names, complete)
     report["differences"] = paired_differences(per_view, "training rooms' mean")
+    if system is not None:
+        report["differences"].update(paired_differences(per_view, NETWORK))
     report["summary"] = {
         "each placement": [
             {
@@ -271,7 +324,7 @@ def run(
             }
             for name, row in report["light"].items()
         ],
-        "nMSE against the training rooms' mean placement, paired by test view (95 % bootstrap)": [
+        "nMSE differences, paired by test view (95 % bootstrap)": [
             {"difference": name, "nMSE": d["diff"], "lo": d["lo"], "hi": d["hi"]}
             for name, d in report["differences"].items()
         ],
@@ -321,11 +374,16 @@ def main(argv=None) -> None:
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--views", type=int, default=None, help="the first N test views (default: all)")
     p.add_argument("--material", default=None, help="a MaterialNet export: fit on its G-buffers (default: the truth)")
+    p.add_argument("--light-net", default=None, help="a LightNet export: its out-of-view branch as one more row")
     p.add_argument("--name", default="shading_placement")
     add_threads_option(p)
     a = p.parse_args(argv)
     apply_threads(a.threads)
-    print(publish(a.name, run(a.data_dir, a.grid, a.sub, a.pixels, a.trim, a.seed, a.views, a.material), plot))
+    print(
+        publish(
+            a.name, run(a.data_dir, a.grid, a.sub, a.pixels, a.trim, a.seed, a.views, a.material, a.light_net), plot
+        )
+    )
 
 
 if __name__ == "__main__":

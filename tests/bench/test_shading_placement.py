@@ -89,6 +89,8 @@ def test_runs_on_the_micro_data(micro_shards, micro_exports, tmp_path):
         "training rooms' mean",
         "shading fit (placement, true energy)",
         "shading fit (its own radiance)",
+        "seen texels, the rest at the image mean",
+        "seen texels, shading-fit lamps, the rest at the image mean",
     ]
     nmse = {row["placement"]: row["surface nMSE"] for row in report["summary"]["each placement"]}
     assert all(math.isfinite(v) for v in nmse.values())
@@ -100,10 +102,51 @@ def test_runs_on_the_micro_data(micro_shards, micro_exports, tmp_path):
     assert (tmp_path / "s.png").stat().st_size > 5_000
     assert report["gbuffers"] == "ground truth"
     # on a MaterialNet's G-buffers the fit changes, the references do not
-    predicted = sp.run(str(micro_shards), grid=2, sub=2, pixels=200, views=2, material=micro_exports / "material.pt")
+    predicted = sp.run(
+        str(micro_shards),
+        grid=2,
+        sub=2,
+        pixels=200,
+        views=2,
+        material=micro_exports / "material.pt",
+        light_net=micro_exports / "light.pt",
+    )
     assert predicted["gbuffers"].startswith("MaterialNet") and predicted["test_views"] == 2
     assert 0 <= predicted["views_without_pixels"] <= 2
     rows = {row["placement"]: row for row in predicted["summary"]["each placement"]}
     assert all(math.isfinite(row["surface nMSE"]) for row in rows.values())
+    assert "trained out-of-view branch" in rows
+    d = predicted["differences"]["surf: seen texels, the rest at the image mean - trained out-of-view branch"]
+    expected = (
+        rows["seen texels, the rest at the image mean"]["surface nMSE"]
+        - rows["trained out-of-view branch"]["surface nMSE"]
+    )
+    assert d["diff"] == pytest.approx(expected, rel=1e-6, abs=1e-9)
     with pytest.raises(ValueError, match="--pixels 4"):
         sp.run(str(micro_shards), grid=2, pixels=4)
+
+
+def test_fitted_lamps_fill_only_the_unseen_ceiling(micro_shards):
+    import json
+    from pathlib import Path
+
+    from pipeline.bench.blend_floor import ground_truth_gbuffers, view_rays
+    from pipeline.bench.visible_light import TEXTURE_SIZE, box_texels, observed, seen_lookup
+    from pipeline.data.datasets import ShardDataset, collate_views
+
+    source_root = Path(json.loads((micro_shards / "manifest.json").read_text())["source_root"])
+    test = ShardDataset(micro_shards, "test", lighting=True)
+    batch = collate_views([test[0]])
+    gb = ground_truth_gbuffers(batch)
+    r = view_rays(batch, gb, "surf")
+    grid = 2
+    glow = torch.tensor([1.0, 2.0, 3.0], dtype=torch.float64)
+    sources = sp.CompleteSources(source_root, grid, glow.expand(1, grid * grid, 3).clone())(0, batch, gb, r)
+    added = sources[sp.SEEN_AND_FIT] - sources[sp.SEEN_ONLY]
+    box = sp.true_box(source_root, batch["id"][0])
+    _, was_seen = seen_lookup(observed(batch, gb, box, TEXTURE_SIZE), box, r["origin"], r["direction"], TEXTURE_SIZE)
+    ceiling = box_texels(box, r["origin"], r["direction"], grid) // (grid * grid) == 3
+    lit = ceiling & ~was_seen
+    assert lit.any() and (~lit).any()
+    assert torch.allclose(added[lit], glow.expand(int(lit.sum()), 3), rtol=0, atol=1e-12)
+    assert float(added[~lit].abs().max()) == 0.0
