@@ -8,29 +8,40 @@ much of the placement that shading determines, with no learning: per test view, 
 G-buffers (an upper bound for predicted ones), the ceiling of the true box
 (`bench.roombox_floor.true_box`) is cut into `--grid` x `--grid` cells as in `bench.lamp_placement`,
 and each visible pixel's radiance is explained as a Lambertian surface lit by every cell at its own
-unknown radiance plus one ambient term:
+unknown radiance, by the walls and floor, and by one ambient term:
 
-    L_p = albedo_p / pi * sum_c w_c E_pc + albedo_p * b,    w_c >= 0, b >= 0 (per RGB channel)
+    L_p = albedo_p / pi * (sum_c w_c E_pc + K_p + u U_p) + albedo_p * b,    w_c, u, b >= 0 (per RGB channel)
 
 where E_pc is the irradiance (W m^-2 per unit radiance) the cell would cast on the pixel's point and
 normal (`irradiance_matrix`: the cell cut into `--sub` x `--sub` patches, each a small area light with
-both cosines and the inverse square; occlusion ignored). The weights are solved by non-negative least
-squares (`fit_view`) on up to `--pixels` pixels (metallic ones, dark albedo and the ceiling itself, which
-no ceiling lamp lights, left out), refitted once without the `--trim` share of pixels the model
-explains worst (specular highlights of glossy surfaces, shadows of furniture). With `--material` the
-fit reads a trained MaterialNet's albedo, normals, material and depth (times its export's `depth_scale`)
-instead, as a deployed fit would; the cells and the scoring stay on the true box.
+both cosines and the inverse square; occlusion ignored), K_p the light of the wall and floor texels the
+camera saw, at what it saw there, and U_p the transfer from the unseen ones, at one unknown radiance u
+(`bounce_terms`, `--no-bounce` leaves both out): the true lamps' direct light is a minority of what the
+fitted pixels show (the report's `true_lamps_direct_share`). The
+weights are solved by non-negative least squares (`fit_view`) on up to `--pixels` pixels (metallic ones,
+dark albedo and the ceiling itself, which no ceiling lamp lights, left out), refitted once without the
+`--trim` share of pixels the model explains worst (specular highlights of glossy surfaces, shadows of
+furniture). With `--material` the fit reads a trained MaterialNet's albedo, normals, material and depth
+(times its export's `depth_scale`) instead, as a deployed fit would; the cells and the scoring stay on
+the true box.
+
+A least-squares fit is a point estimate, and the light's squared error punishes a lamp put in the wrong
+cell twice; the placement used is the fit's shrunk towards the training rooms' mean placement, the
+fit's weight (0 to 1 by 0.1) the one whose light error is lowest on the validation views, and the fit's
+energy is scaled by the median ratio of true to fitted lamp energy on those views (the fit also lends
+the lamps bounced light the model leaves out). Nothing of the test views but their photo and G-buffers
+enters a fit.
 
 Scored as `bench.lamp_placement` scores its placements (tiny's blend with the image's pixel as the local
 source, ceiling directions at the placement's cell plus the photo's mean, the rest at the photo's mean):
-the fit as a placement with the true lamp energy spread by it (placement scored alone, comparable with
-the CNN's rows) and the fit's own radiances (nothing true but the geometry), paired by view against
-the training rooms' mean placement with a bootstrap interval. Then the whole out-of-view light with
-nothing true but the box (`CompleteSources`: the texels the camera saw, the fitted lamps on the unseen
-ceiling, the image's mean elsewhere), with and without the lamps, and with `--light-net` a trained
-LightNet's branch on the same directions (`blend_floor.network_sources`), each paired against it too.
-Writes reports/bench/shading_placement.json (or `--name`) and a PNG of the light errors and the first
-views' true and fitted ceilings.
+the fit's own placement and the shrunk one with the true lamp energy spread by them (placement scored
+alone, comparable with that bench's CNN), the fit's own radiances, and the shrunk placement at the
+calibrated energy. Then the whole out-of-view light with nothing true but the box (`CompleteSources`: the
+texels the camera saw, the calibrated lamps on the unseen ceiling, the image's mean elsewhere), with and
+without the lamps, and with `--light-net` a trained LightNet's branch on the same directions
+(`blend_floor.network_sources`); every row paired by test view against the training rooms' mean
+placement and the branch, with bootstrap intervals. Writes reports/bench/shading_placement.json (or
+`--name`) and a PNG of the light errors and the first views' true and fitted ceilings.
 """
 
 from __future__ import annotations
@@ -59,6 +70,7 @@ from pipeline.bench.lamp_placement import (
 from pipeline.bench.roombox_floor import true_box
 from pipeline.bench.visible_light import TEXTURE_SIZE, box_texels, observed, room_lamps, seen_lookup
 from pipeline.ops.camera import backproject_views
+from pipeline.ops.roombox import OTHER_AXES
 
 CEILING_CLEARANCE_M = 0.05  # points this close below the ceiling are the ceiling (no ceiling lamp lights them)
 MIN_ALBEDO = 0.02  # darker pixels carry almost no shading signal
@@ -91,6 +103,66 @@ def irradiance_matrix(points: torch.Tensor, normals: torch.Tensor, box, grid: in
     cos_surface = ((d * normals[:, None, None]).sum(-1) / r).clamp(min=0)
     cos_lamp = (d[..., 1] / r).clamp(min=0)  # the patch faces -y (down): cos = (y_lamp - y_point) / r
     return (area * cos_surface * cos_lamp / r2).sum(-1)
+
+
+BOUNCE_TEXELS = 16  # texels a side of each box face whose seen radiance is a known bounce in the fit
+
+
+def box_texel_geometry(box, size: int) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """Centres (6 size^2, 3), inward unit normals (6 size^2, 3) and areas (6 size^2,) m^2 of the texels of
+    the box's faces, box frame, float64, in `ops.roombox`'s flat order (face, t, s; face 2 axis + side,
+    side 1 the axis's high wall; s and t along the axis's `OTHER_AXES`)."""
+    _, lo, hi = (t.double() for t in box)
+    centres, normals, areas = [], [], []
+    steps = (torch.arange(size, dtype=torch.float64) + 0.5) / size
+    for face in range(6):
+        axis, side = divmod(face, 2)
+        a_s, a_t = OTHER_AXES[axis]
+        tt, ss = torch.meshgrid(
+            lo[a_t] + steps * (hi[a_t] - lo[a_t]), lo[a_s] + steps * (hi[a_s] - lo[a_s]), indexing="ij"
+        )
+        c = torch.zeros(size, size, 3, dtype=torch.float64)
+        c[..., a_s], c[..., a_t], c[..., axis] = ss, tt, (hi if side else lo)[axis]
+        n = torch.zeros(size * size, 3, dtype=torch.float64)
+        n[:, axis] = -1.0 if side else 1.0
+        centres.append(c.reshape(-1, 3))
+        normals.append(n)
+        areas.append(torch.full((size * size,), float((hi[a_s] - lo[a_s]) * (hi[a_t] - lo[a_t])) / size**2))
+    return torch.cat(centres), torch.cat(normals), torch.cat(areas).double()
+
+
+def texel_transfer(points: torch.Tensor, normals: torch.Tensor, box, size: int) -> torch.Tensor:
+    """(P, 6 size^2) irradiance (W m^-2) at points (P, 3) with unit normals (P, 3), box frame, from each
+    texel of `box_texel_geometry` at unit radiance: A cos cos / r^2 at the texel's centre, the distance
+    held at least one texel side (a point beside a face does not meet a singular texel), float64."""
+    centres, tnormals, areas = box_texel_geometry(box, size)
+    side = float((box[2] - box[1]).max()) / size
+    d = centres[None] - points[:, None]  # (P, K, 3) towards the texel
+    r2 = (d**2).sum(-1).clamp(min=side**2)
+    r = r2.sqrt()
+    cos_surface = ((d * normals[:, None]).sum(-1) / r).clamp(min=0)
+    cos_texel = (-(d * tnormals[None]).sum(-1) / r).clamp(min=0)
+    return areas[None] * cos_surface * cos_texel / r2
+
+
+def bounce_terms(item: dict, box, px: dict) -> dict:
+    """The light the fitted pixels px get from the box's walls and floor (not the ceiling, whose cells are
+    fitted): from the texels the camera saw, at what it saw there (`visible_light.observed` of `item`'s
+    photo on its depth and normals), as a known irradiance (P, 3); from the unseen ones, their summed
+    transfer (P,) for one unknown radiance."""
+    from pipeline.bench.blend_floor import ground_truth_gbuffers
+    from pipeline.data.datasets import collate_views
+
+    batch = collate_views([{k: v for k, v in item.items() if k != "light"}])
+    seen_radiance, count = observed(batch, ground_truth_gbuffers(batch), box, BOUNCE_TEXELS)
+    face = torch.arange(len(count)) // BOUNCE_TEXELS**2
+    walls = face != CEILING
+    transfer = texel_transfer(px["point"], px["normal"], box, BOUNCE_TEXELS)
+    seen = walls & (count > 0)
+    return {
+        "known": transfer[:, seen] @ seen_radiance[seen].double(),
+        "unseen": transfer[:, walls & (count == 0)].sum(1),
+    }
 
 
 def shading_pixels(item: dict, box, pixels: int, seed: int) -> dict:
@@ -127,26 +199,32 @@ def _nnls(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     return x / scale
 
 
-def fit_view(px: dict, box, grid: int, sub: int, trim: float) -> dict:
+def fit_view(px: dict, box, grid: int, sub: int, trim: float, bounce: dict | None = None) -> dict:
     """Per-cell radiance (grid * grid, 3) and ambient radiance b (3,) explaining the pixels `px` (module
     docstring), each RGB channel its own non-negative least squares; refitted once without the `trim`
-    share of pixels with the largest absolute residual. Also the relative residual of the kept pixels.
-    A view without pixels to fit gets no lamp and no ambient light (a uniform placement), counted by `run`."""
+    share of pixels with the largest absolute residual. With `bounce` (`bounce_terms`) the seen walls'
+    light is subtracted as known and the unseen walls get one more non-negative radiance. Also the
+    relative residual of the kept pixels. A view without pixels to fit gets no lamp and no ambient light
+    (a uniform placement), counted by `run`."""
     if len(px["point"]) == 0:
         zeros = torch.zeros(grid * grid, 3, dtype=torch.float64)
         return {"cells": zeros, "ambient": zeros[0], "relative_residual": math.nan, "pixels": 0}
     E = irradiance_matrix(px["point"], px["normal"], box, grid, sub).numpy()  # (P, C)
     albedo, radiance = px["albedo"].numpy(), px["radiance"].numpy()
+    known = np.zeros_like(radiance) if bounce is None else bounce["known"].numpy()
     cells = np.zeros((E.shape[1], 3))
     ambient = np.zeros(3)
     keep = np.ones(len(E), bool)
     for attempt in range(2 if trim > 0 else 1):
         residual = np.zeros_like(radiance)
         for c in range(3):
-            a = np.concatenate([albedo[:, c : c + 1] / math.pi * E, albedo[:, c : c + 1]], 1)
-            x = _nnls(a[keep], radiance[keep, c])
-            cells[:, c], ambient[c] = x[:-1], x[-1]
-            residual[:, c] = a @ x - radiance[:, c]
+            k = albedo[:, c : c + 1] / math.pi
+            columns = [k * E] + ([k * bounce["unseen"].numpy()[:, None]] if bounce is not None else [])
+            a = np.concatenate([*columns, albedo[:, c : c + 1]], 1)
+            target = radiance[:, c] - k[:, 0] * known[:, c]
+            x = _nnls(a[keep], target[keep])
+            cells[:, c], ambient[c] = x[: E.shape[1]], x[-1]
+            residual[:, c] = a @ x - target
         if attempt == 0 and trim > 0:
             err = np.abs(residual).sum(1)
             keep = err <= np.quantile(err, 1 - trim)
@@ -187,17 +265,19 @@ def training_mean_placement(data_dir: Path, source_root: Path, grid: int) -> tor
 SEEN_ONLY = "seen texels, the rest at the image mean"
 SEEN_AND_FIT = "seen texels, shading-fit lamps, the rest at the image mean"
 NETWORK = "trained out-of-view branch"
+WEIGHTS = tuple(k / 10 for k in range(11))  # the fit's weights against the mean placement tried on validation
 
 
 class CompleteSources:
     """The out-of-view light with nothing true but the box (`lamp_placement.light_scores`' extra sources):
     each direction that leaves the true box through a texel the camera saw takes what it saw there
     (`visible_light.observed` on the ground-truth G-buffers, `visible_light.TEXTURE_SIZE` texels a side);
-    an unseen one through the ceiling its fitted cell's radiance plus the image's mean; any other the image's
-    mean. Beside it the same without the lamps, and a trained LightNet's branch when `system` is given."""
+    an unseen one through the ceiling its cell's radiance in `lamps` (N, grid * grid, 3) plus the image's
+    mean; any other the image's mean. Beside it the same without the lamps, and a trained LightNet's
+    branch when `system` is given."""
 
-    def __init__(self, source_root: Path, grid: int, fitted: torch.Tensor, system=None):
-        self.source_root, self.grid, self.fitted, self.system = source_root, grid, fitted, system
+    def __init__(self, source_root: Path, grid: int, lamps: torch.Tensor, system=None):
+        self.source_root, self.grid, self.lamps, self.system = source_root, grid, lamps, system
         self.names = (SEEN_ONLY, SEEN_AND_FIT) + ((NETWORK,) if system is not None else ())
         self._seen: tuple | None = None  # (view index, what the camera saw of its box)
 
@@ -209,7 +289,7 @@ class CompleteSources:
         index = box_texels(box, r["origin"], r["direction"], self.grid)
         ceiling = (index // (self.grid * self.grid)) == CEILING
         image_mean = batch["im"][0].double().clamp(min=0).mean((1, 2)).expand(len(index), 3)
-        lamps = torch.where(ceiling[:, None], self.fitted[i].double()[index % (self.grid * self.grid)], 0.0)
+        lamps = torch.where(ceiling[:, None], self.lamps[i].double()[index % (self.grid * self.grid)], 0.0)
         out = {
             SEEN_ONLY: torch.where(was_seen[:, None], values, image_mean),
             SEEN_AND_FIT: torch.where(was_seen[:, None], values, image_mean + lamps),
@@ -225,6 +305,49 @@ def _finite_stat(stat, values: list[float]) -> float | None:
     return float(stat(finite)) if finite else None
 
 
+def fit_split(data, source_root: Path, grid: int, options: dict, material=None) -> dict:
+    """Every view of `data` fitted (`fit_view`; `options`: sub, pixels, trim, seed, bounce): the true and
+    fitted cell radiance (N, grid * grid, 3) and the fit's statistics. `material`: (MaterialNet, depth
+    scale) whose maps replace the truth in the fit."""
+    true_cells, fitted, residuals, used, direct_share = [], [], [], [], []
+    for i in tqdm(range(len(data)), desc="shading fit"):
+        item = data[i]
+        box = true_box(source_root, item["id"])
+        true_cells.append(ceiling_lamps(room_lamps(source_root, item["id"]), box, grid).reshape(-1, 3))
+        maps = item if material is None else predicted_maps(item, *material)
+        px = shading_pixels(maps, box, options["pixels"], options["seed"] + i)
+        bounce = bounce_terms(maps, box, px) if options["bounce"] and len(px["point"]) else None
+        fit = fit_view(px, box, grid, options["sub"], options["trim"], bounce)
+        if len(px["point"]):  # how much of what the pixels show the true lamps light directly
+            direct = (
+                px["albedo"] / math.pi * (irradiance_matrix(px["point"], px["normal"], box, grid, 1) @ true_cells[-1])
+            )
+            direct_share.append(float(luminance(direct).sum() / luminance(px["radiance"]).sum().clamp(min=1e-12)))
+        fitted.append(fit["cells"])
+        residuals.append(fit["relative_residual"])
+        used.append(fit["pixels"])
+    return {
+        "true": torch.stack(true_cells),
+        "fitted": torch.stack(fitted),
+        "residuals": residuals,
+        "used": used,
+        "direct_share": direct_share,
+    }
+
+
+def shrunk(fitted: torch.Tensor, prior: torch.Tensor, weight: float, grid: int) -> torch.Tensor:
+    """weight * the fit's placement + (1 - weight) * the prior placement (1, grid * grid), (N, grid * grid)."""
+    return weight * distribution(fitted.view(-1, grid, grid, 3)) + (1 - weight) * prior
+
+
+def energy_scale(fits: dict) -> float:
+    """Median over views with lamps of the true lamp luminance over the fitted one: the fit's energy
+    calibrated on other views (1 where none has both)."""
+    true, fit = luminance(fits["true"]).sum(1), luminance(fits["fitted"]).sum(1)
+    both = (true > 0) & (fit > 0)
+    return float(torch.median(true[both] / fit[both])) if both.any() else 1.0
+
+
 def run(
     data_dir="outputs/preprocess",
     grid=8,
@@ -235,6 +358,7 @@ def run(
     views=None,
     material=None,
     light_net=None,
+    bounce=True,
 ) -> dict:
     from torch.utils.data import Subset
 
@@ -250,41 +374,44 @@ def run(
             f"--grid {grid}, --sub {sub}, --pixels {pixels}, --trim {trim}: need grid >= 1, sub >= 1, "
             "pixels > grid^2 and 0 <= trim < 0.5"
         )
-    test = ShardDataset(data_dir, "test", lighting=True)
+    test, val = ShardDataset(data_dir, "test", lighting=True), ShardDataset(data_dir, "val", lighting=True)
     if views is not None:
-        test = Subset(test, list(range(min(views, len(test)))))
-    if len(test) == 0:
-        raise ValueError(f"{data_dir}: the test split holds no view")
-    mean_prior = training_mean_placement(data_dir, source_root, grid)
-    material_net = depth_scale = None
+        test, val = (Subset(d, list(range(min(views, len(d))))) for d in (test, val))
+    for name, d in (("test", test), ("val", val)):
+        if len(d) == 0:
+            raise ValueError(f"{data_dir}: the {name} split holds no view")
+    prior = training_mean_placement(data_dir, source_root, grid)
+    maps = None
     if material is not None:
         from pipeline.models.material_net import load_material_export
 
-        material_net, blob = load_material_export(material)
-        depth_scale = float(blob["depth_scale"])
-    true_cells, fitted, ambient, residuals, used = [], [], [], [], []
-    for i in tqdm(range(len(test)), desc="shading fit"):
-        item = test[i]
-        box = true_box(source_root, item["id"])
-        true_cells.append(ceiling_lamps(room_lamps(source_root, item["id"]), box, grid).reshape(-1, 3))
-        maps = item if material_net is None else predicted_maps(item, material_net, depth_scale)
-        fit = fit_view(shading_pixels(maps, box, pixels, seed + i), box, grid, sub, trim)
-        fitted.append(fit["cells"])
-        ambient.append(fit["ambient"])
-        residuals.append(fit["relative_residual"])
-        used.append(fit["pixels"])
-    true_cells, fitted = torch.stack(true_cells), torch.stack(fitted)
-    target = distribution(true_cells.view(-1, grid, grid, 3))
-    fitted_placement = distribution(fitted.view(-1, grid, grid, 3))
+        net, blob = load_material_export(material)
+        maps = (net, float(blob["depth_scale"]))
+    options = {"sub": sub, "pixels": pixels, "trim": trim, "seed": seed, "bounce": bool(bounce)}
+    # the fit's weight against the mean placement and its energy scale, both chosen on the validation views
+    fits_val = fit_split(val, source_root, grid, options, maps)
+    tried = {f"{w:.1f}": shrunk(fits_val["fitted"], prior, w, grid) for w in WEIGHTS}
+    val_light, _ = light_scores(val, source_root, grid, tried)
+    val_error = {w: 0.5 * (row["surf"]["nmse"] + row["free"]["nmse"]) for w, row in val_light.items() if w in tried}
+    weight = float(min(val_error, key=val_error.get))
+    scale = energy_scale(fits_val)
+
+    fits = fit_split(test, source_root, grid, options, maps)
+    fitted = fits["fitted"]
+    target = distribution(fits["true"].view(-1, grid, grid, 3))
+    placed = shrunk(fitted, prior, weight, grid)
+    lamps = placed[..., None] * (scale * fitted.sum(1, keepdim=True))  # the calibrated energy, placed
     placements = {
         "uniform over the ceiling": torch.full_like(target, 1 / target.shape[1]),
-        "training rooms' mean": mean_prior.expand_as(target),
-        "shading fit (placement, true energy)": fitted_placement,
+        "training rooms' mean": prior.expand_as(target),
+        "shading fit (placement, true energy)": distribution(fitted.view(-1, grid, grid, 3)),
+        "shading fit shrunk to the mean (placement, true energy)": placed,
         "shading fit (its own radiance)": fitted,
+        "shading fit shrunk, calibrated energy": lamps,
     }
-    true_energy = luminance(true_cells).sum(1)
-    fit_energy = luminance(fitted).sum(1)
+    true_energy = luminance(fits["true"]).sum(1)
     has_lamps = true_energy > 0
+    ratio = luminance(fitted).sum(1)[has_lamps] / true_energy[has_lamps]
     report = {
         "data_dir": str(data_dir),
         "grid": grid,
@@ -292,14 +419,28 @@ def run(
         "pixels": pixels,
         "trim": trim,
         "seed": seed,
+        "bounce": bool(bounce),
+        "bounce_texels": BOUNCE_TEXELS if bounce else None,
         "gbuffers": "ground truth" if material is None else f"MaterialNet {material}",
         "test_views": len(test),
+        "val_views": len(val),
         "views_with_lamps": int(has_lamps.sum()),
-        "pixels_used": {"median": float(np.median(used)), "min": int(min(used))},
-        "views_without_pixels": int(sum(u == 0 for u in used)),
-        "relative_residual": {"median": _finite_stat(np.median, residuals), "max": _finite_stat(np.max, residuals)},
-        "fitted_over_true_lamp_energy": {
-            "median": float(torch.median(fit_energy[has_lamps] / true_energy[has_lamps])) if has_lamps.any() else None
+        "pixels_used": {"median": float(np.median(fits["used"])), "min": int(min(fits["used"]))},
+        "views_without_pixels": int(sum(u == 0 for u in fits["used"])),
+        "relative_residual": {
+            "median": _finite_stat(np.median, fits["residuals"]),
+            "max": _finite_stat(np.max, fits["residuals"]),
+        },
+        "fitted_over_true_lamp_energy": {"median": float(torch.median(ratio)) if has_lamps.any() else None},
+        "true_lamps_direct_share": {
+            "median": _finite_stat(np.median, fits["direct_share"]),
+            "definition": "the true lamps' direct light (on the ceiling's cells, no occlusion) over the fitted pixels' "
+            "radiance, luminance",
+        },
+        "validation": {
+            "mean nMSE (surface and free) by the fit's weight": val_error,
+            "chosen weight": weight,
+            "energy scale (true over fitted, median)": scale,
         },
         "placement": {
             name: placement_scores(p if p.dim() == 2 else distribution(p.view(-1, grid, grid, 3)), target)
@@ -307,7 +448,7 @@ def run(
         },
     }
     system = None if light_net is None else network_system(light_net, material)
-    complete = CompleteSources(source_root, grid, fitted, system)
+    complete = CompleteSources(source_root, grid, lamps, system)
     report["light_net"] = None if light_net is None else str(light_net)
     report["light"], per_view = light_scores(test, source_root, grid, placements, complete.names, complete)
     report["differences"] = paired_differences(per_view, "training rooms' mean")
@@ -331,15 +472,16 @@ def run(
     }
     report["examples"] = {
         "target": target[:4].view(-1, grid, grid).tolist(),
-        "shading fit": fitted_placement[:4].view(-1, grid, grid).tolist(),
+        "shading fit": distribution(fitted[:4].view(-1, grid, grid, 3)).view(-1, grid, grid).tolist(),
     }
     return report
 
 
 def plot(report: dict, path) -> None:
-    fig = Figure(figsize=(11, 5.6))
+    fig = Figure(figsize=(11, 6))
+    grid_spec = fig.add_gridspec(2, 8, height_ratios=[1.5, 1])
     names = list(report["light"])
-    ax = fig.add_subplot(2, 1, 1)
+    ax = fig.add_subplot(grid_spec[0, :])
     y = np.arange(len(names))
     for j, kind in enumerate(KINDS):
         vals = [report["light"][n].get(kind, {}).get("nmse", math.nan) for n in names]
@@ -355,11 +497,11 @@ def plot(report: dict, path) -> None:
     ex = report["examples"]
     for i in range(min(4, len(ex["target"]))):
         for j, key in enumerate(("target", "shading fit")):
-            a = fig.add_subplot(2, 8, 9 + 2 * i + j)
+            a = fig.add_subplot(grid_spec[1, 2 * i + j])
             a.imshow(np.array(ex[key][i]), cmap="magma")
             a.set_xticks([])
             a.set_yticks([])
-            a.set_title(f"view {i}: " + ("true" if j == 0 else "fit"), fontsize=7)
+            a.set_title(f"test view {i}\n" + ("true lamps" if j == 0 else "shading fit"), fontsize=7)
     fig.tight_layout()
     fig.savefig(path, dpi=110)
 
@@ -372,16 +514,19 @@ def main(argv=None) -> None:
     p.add_argument("--pixels", type=int, default=4000, help="pixels per view in the fit (at most)")
     p.add_argument("--trim", type=float, default=0.02, help="share of worst-explained pixels dropped in the refit")
     p.add_argument("--seed", type=int, default=0)
-    p.add_argument("--views", type=int, default=None, help="the first N test views (default: all)")
+    p.add_argument("--views", type=int, default=None, help="the first N test and validation views (default: all)")
     p.add_argument("--material", default=None, help="a MaterialNet export: fit on its G-buffers (default: the truth)")
     p.add_argument("--light-net", default=None, help="a LightNet export: its out-of-view branch as one more row")
+    p.add_argument("--no-bounce", action="store_true", help="leave the walls' bounce light out of the fit")
     p.add_argument("--name", default="shading_placement")
     add_threads_option(p)
     a = p.parse_args(argv)
     apply_threads(a.threads)
     print(
         publish(
-            a.name, run(a.data_dir, a.grid, a.sub, a.pixels, a.trim, a.seed, a.views, a.material, a.light_net), plot
+            a.name,
+            run(a.data_dir, a.grid, a.sub, a.pixels, a.trim, a.seed, a.views, a.material, a.light_net, not a.no_bounce),
+            plot,
         )
     )
 

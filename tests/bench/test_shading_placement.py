@@ -40,6 +40,26 @@ def test_cells_are_row_major_along_z_then_x():
     assert centres[:, 0].tolist() == [[-1.0, 2.5, -0.75], [1.0, 2.5, -0.75], [-1.0, 2.5, 0.75], [1.0, 2.5, 0.75]]
 
 
+def test_box_texels_are_laid_out_as_the_branch_looks_them_up():
+    from pipeline.ops.roombox import exit_face
+
+    centres, normals, areas = sp.box_texel_geometry(BOX, 4)
+    assert centres.shape == (96, 3) and float(areas[:16].sum()) == pytest.approx(2.5 * 3.0)  # the left wall
+    # a ray from the box's centre to a texel's centre leaves through that texel (face, t, s order)
+    middle = ((BOX[1] + BOX[2]) / 2).expand(96, 3)
+    face, st, _ = exit_face(middle, centres - middle, BOX[1].expand(96, 3), BOX[2].expand(96, 3))
+    texel = ((st + 1) * 2).long().clamp(0, 3)
+    assert torch.equal(face * 16 + texel[:, 1] * 4 + texel[:, 0], torch.arange(96))
+    assert torch.equal((normals * (middle - centres)).sum(-1) > 0, torch.ones(96, dtype=torch.bool))  # inward
+    # the ceiling's texels cast what the ceiling's cells cast (one patch each), on points a texel away
+    point = torch.tensor([[0.3, 0.4, -0.2], [-1.5, 1.0, 1.0]], dtype=torch.float64)
+    normal = torch.nn.functional.normalize(
+        torch.tensor([[0.2, 1.0, 0.1], [1.0, 0.3, 0.0]], dtype=torch.float64), dim=-1
+    )
+    ceiling = sp.texel_transfer(point, normal, BOX, 4)[:, 3 * 16 : 4 * 16]
+    assert torch.allclose(ceiling, sp.irradiance_matrix(point, normal, BOX, 4, 1), rtol=1e-12)
+
+
 def test_the_fit_recovers_lamps_from_the_shading_they_cast():
     g = torch.Generator().manual_seed(0)
     P = 600
@@ -73,6 +93,19 @@ def test_the_fit_recovers_lamps_from_the_shading_they_cast():
     fit = sp.fit_view({**px, "radiance": spiked}, BOX, grid, 4, trim=0.02)
     assert fit["pixels"] == P - 12
     assert torch.allclose(fit["cells"], lamps, atol=1e-5 * float(lamps.max()))
+    # with the walls' bounce: the seen walls' light known, the unseen walls' at one unknown radiance
+    wall = sp.texel_transfer(point, normal, BOX, 4)
+    seen_walls = torch.rand(96, generator=g) < 0.5
+    seen_walls[48:64] = False  # the ceiling is the cells'
+    unseen_walls = ~seen_walls
+    unseen_walls[48:64] = False
+    wall_radiance = torch.rand(96, 3, generator=g, dtype=torch.float64)
+    known = wall[:, seen_walls] @ wall_radiance[seen_walls]
+    unseen = wall[:, unseen_walls].sum(1)
+    bounced = radiance + albedo / math.pi * (known + 0.4 * unseen[:, None])
+    fit = sp.fit_view({**px, "radiance": bounced}, BOX, grid, 4, 0.0, {"known": known, "unseen": unseen})
+    assert torch.allclose(fit["cells"], lamps, atol=1e-6 * float(lamps.max()))
+    assert fit["relative_residual"] < 1e-8
     # a view with nothing to fit places no lamp (a uniform placement) and says so
     empty = {k: v[:0] for k, v in px.items()}
     fit = sp.fit_view(empty, BOX, grid, 4, trim=0.02)
@@ -88,7 +121,9 @@ def test_runs_on_the_micro_data(micro_shards, micro_exports, tmp_path):
         "uniform over the ceiling",
         "training rooms' mean",
         "shading fit (placement, true energy)",
+        "shading fit shrunk to the mean (placement, true energy)",
         "shading fit (its own radiance)",
+        "shading fit shrunk, calibrated energy",
         "seen texels, the rest at the image mean",
         "seen texels, shading-fit lamps, the rest at the image mean",
     ]
@@ -101,6 +136,12 @@ def test_runs_on_the_micro_data(micro_shards, micro_exports, tmp_path):
     sp.plot(report, tmp_path / "s.png")
     assert (tmp_path / "s.png").stat().st_size > 5_000
     assert report["gbuffers"] == "ground truth"
+    validation = report["validation"]
+    assert (
+        validation["chosen weight"] in sp.WEIGHTS
+        and len(validation["mean nMSE (surface and free) by the fit's weight"]) == 11
+    )
+    assert validation["energy scale (true over fitted, median)"] > 0
     # on a MaterialNet's G-buffers the fit changes, the references do not
     predicted = sp.run(
         str(micro_shards),
