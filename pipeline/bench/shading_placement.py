@@ -22,8 +22,8 @@ weights are solved by non-negative least squares (`fit_view`) on up to `--pixels
 dark albedo and the ceiling itself, which no ceiling lamp lights, left out), refitted once without the
 `--trim` share of pixels the model explains worst (specular highlights of glossy surfaces, shadows of
 furniture). With `--material` the fit reads a trained MaterialNet's albedo, normals, material and depth
-(times its export's `depth_scale`) instead, as a deployed fit would; the cells and the scoring stay on
-the true box.
+(times its export's `depth_scale`) instead, as a deployed fit would (`--predicted` takes only some of
+them, to find which map's error costs the fit); the cells and the scoring stay on the true box.
 
 A least-squares fit is a point estimate, and the light's squared error punishes a lamp put in the wrong
 cell twice; the placement used is the fit's shrunk towards the training rooms' mean placement, the
@@ -237,14 +237,18 @@ def fit_view(px: dict, box, grid: int, sub: int, trim: float, bounce: dict | Non
     }
 
 
-def predicted_maps(item: dict, material_net, depth_scale: float) -> dict:
-    """`item` with albedo, normal, material and depth (metres, 0 outside the mask) replaced by a trained
-    MaterialNet's prediction from its photo."""
+PREDICTABLE = ("albedo", "normal", "material", "depth")  # the maps --predicted can take from MaterialNet
+
+
+def predicted_maps(item: dict, material_net, depth_scale: float, keys=PREDICTABLE) -> dict:
+    """`item` with the maps in `keys` (of albedo, normal, material and depth: metres, 0 outside the mask)
+    replaced by a trained MaterialNet's prediction from its photo; the others stay the truth."""
     with torch.no_grad():
         pred = material_net(item["im"][None])
-    depth = pred["depth"][0] * depth_scale
-    out = {**item, **{k: pred[k][0] for k in ("albedo", "normal", "material")}}
-    out["depth"] = torch.where(item["mask"], depth, torch.zeros_like(depth))
+    out = {**item, **{k: pred[k][0] for k in ("albedo", "normal", "material") if k in keys}}
+    if "depth" in keys:
+        depth = pred["depth"][0] * depth_scale
+        out["depth"] = torch.where(item["mask"], depth, torch.zeros_like(depth))
     return out
 
 
@@ -308,7 +312,7 @@ def _finite_stat(stat, values: list[float]) -> float | None:
 def fit_split(data, source_root: Path, grid: int, options: dict, material=None) -> dict:
     """Every view of `data` fitted (`fit_view`; `options`: sub, pixels, trim, seed, bounce): the true and
     fitted cell radiance (N, grid * grid, 3) and the fit's statistics. `material`: (MaterialNet, depth
-    scale) whose maps replace the truth in the fit."""
+    scale, the maps it replaces) whose maps replace the truth in the fit."""
     true_cells, fitted, residuals, used, direct_share = [], [], [], [], []
     for i in tqdm(range(len(data)), desc="shading fit"):
         item = data[i]
@@ -359,6 +363,7 @@ def run(
     material=None,
     light_net=None,
     bounce=True,
+    predicted=PREDICTABLE,
 ) -> dict:
     from torch.utils.data import Subset
 
@@ -374,6 +379,8 @@ def run(
             f"--grid {grid}, --sub {sub}, --pixels {pixels}, --trim {trim}: need grid >= 1, sub >= 1, "
             "pixels > grid^2 and 0 <= trim < 0.5"
         )
+    if not predicted or any(k not in PREDICTABLE for k in predicted):
+        raise ValueError(f"--predicted {','.join(predicted)}: choose some of {','.join(PREDICTABLE)}")
     test, val = ShardDataset(data_dir, "test", lighting=True), ShardDataset(data_dir, "val", lighting=True)
     if views is not None:
         test, val = (Subset(d, list(range(min(views, len(d))))) for d in (test, val))
@@ -386,7 +393,7 @@ def run(
         from pipeline.models.material_net import load_material_export
 
         net, blob = load_material_export(material)
-        maps = (net, float(blob["depth_scale"]))
+        maps = (net, float(blob["depth_scale"]), tuple(predicted))
     options = {"sub": sub, "pixels": pixels, "trim": trim, "seed": seed, "bounce": bool(bounce)}
     # the fit's weight against the mean placement and its energy scale, both chosen on the validation views
     fits_val = fit_split(val, source_root, grid, options, maps)
@@ -421,7 +428,10 @@ def run(
         "seed": seed,
         "bounce": bool(bounce),
         "bounce_texels": BOUNCE_TEXELS if bounce else None,
-        "gbuffers": "ground truth" if material is None else f"MaterialNet {material}",
+        "gbuffers": "ground truth"
+        if material is None
+        else f"MaterialNet {material}"
+        + ("" if set(predicted) == set(PREDICTABLE) else f" ({', '.join(predicted)}; the rest true)"),
         "test_views": len(test),
         "val_views": len(val),
         "views_with_lamps": int(has_lamps.sum()),
@@ -517,6 +527,11 @@ def main(argv=None) -> None:
     p.add_argument("--views", type=int, default=None, help="the first N test and validation views (default: all)")
     p.add_argument("--material", default=None, help="a MaterialNet export: fit on its G-buffers (default: the truth)")
     p.add_argument("--light-net", default=None, help="a LightNet export: its out-of-view branch as one more row")
+    p.add_argument(
+        "--predicted",
+        default=",".join(PREDICTABLE),
+        help="with --material, the maps taken from it (the rest stay true): which error costs the fit",
+    )
     p.add_argument("--no-bounce", action="store_true", help="leave the walls' bounce light out of the fit")
     p.add_argument("--name", default="shading_placement")
     add_threads_option(p)
@@ -525,7 +540,19 @@ def main(argv=None) -> None:
     print(
         publish(
             a.name,
-            run(a.data_dir, a.grid, a.sub, a.pixels, a.trim, a.seed, a.views, a.material, a.light_net, not a.no_bounce),
+            run(
+                a.data_dir,
+                a.grid,
+                a.sub,
+                a.pixels,
+                a.trim,
+                a.seed,
+                a.views,
+                a.material,
+                a.light_net,
+                not a.no_bounce,
+                tuple(a.predicted.split(",")),
+            ),
             plot,
         )
     )

@@ -163,6 +163,8 @@ def test_runs_on_the_micro_data(micro_shards, micro_exports, tmp_path):
         - rows["trained out-of-view branch"]["surface nMSE"]
     )
     assert d["diff"] == pytest.approx(expected, rel=1e-6, abs=1e-9)
+    with pytest.raises(ValueError, match="--predicted colour"):
+        sp.run(str(micro_shards), material=micro_exports / "material.pt", predicted=("colour",))
     with pytest.raises(ValueError, match="--pixels 4"):
         sp.run(str(micro_shards), grid=2, pixels=4)
 
@@ -191,3 +193,26 @@ def test_fitted_lamps_fill_only_the_unseen_ceiling(micro_shards):
     assert lit.any() and (~lit).any()
     assert torch.allclose(added[lit], glow.expand(int(lit.sum()), 3), rtol=0, atol=1e-12)
     assert float(added[~lit].abs().max()) == 0.0
+
+
+def test_predicted_maps_replace_only_the_maps_asked_for():
+    item = {
+        "im": torch.rand(3, 4, 5),
+        "albedo": torch.zeros(3, 4, 5),
+        "normal": torch.zeros(3, 4, 5),
+        "material": torch.zeros(2, 4, 5),
+        "depth": torch.ones(1, 4, 5),
+        "mask": torch.ones(1, 4, 5, dtype=torch.bool),
+    }
+    item["mask"][0, 0, 0] = False
+
+    def net(im):
+        return {"albedo": im + 1, "normal": im + 2, "material": im[:, :2] + 3, "depth": im[:, :1] + 4}
+
+    out = sp.predicted_maps(item, net, 2.0, ("albedo", "depth"))
+    assert torch.equal(out["albedo"], item["im"] + 1) and torch.equal(out["normal"], item["normal"])
+    assert torch.equal(out["material"], item["material"])
+    assert float(out["depth"][0, 0, 0]) == 0.0  # outside the mask
+    assert torch.allclose(out["depth"][0, 1:], (item["im"][:1, 1:] + 4) * 2.0)
+    every = sp.predicted_maps(item, net, 2.0)
+    assert torch.equal(every["normal"], item["im"] + 2) and torch.equal(every["material"], item["im"][:2] + 3)
