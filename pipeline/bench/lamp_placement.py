@@ -152,14 +152,15 @@ def placement_scores(pred: torch.Tensor, target: torch.Tensor) -> dict:
 
 @torch.no_grad()
 def light_scores(
-    test, source_root: Path, grid: int, placements: dict, extra_names: tuple = (), extra_sources=None
+    test, source_root: Path, grid: int, placements: dict, extra_names: tuple = (), extra_sources=None, boxes=None
 ) -> tuple[dict, dict]:
     """Per placement (name -> (N, grid * grid) distributions over the test views, or (N, grid * grid, 3)
     radiance per cell), the surface and free nMSE and class parts of the light with the lamps' radiance
     spread by that placement (module docstring; a radiance placement stands for itself),
     and per kind the test views' summed squared errors and energies (for `paired_differences`).
     `extra_sources(i, batch, gb, r)`, when given, returns more out-of-view sources (name in `extra_names`
-    -> (M S, 3)) at the directions r of `view_rays` of test view i, scored alike."""
+    -> (M S, 3)) at the directions r of `view_rays` of test view i, scored alike. `boxes`: per test view
+    the box whose ceiling cells the placements refer to (default: the true box)."""
     from torch.utils.data import DataLoader
 
     from pipeline.data.datasets import collate_views
@@ -170,7 +171,7 @@ def light_scores(
     loader = DataLoader(test, 1, collate_fn=collate_views)
     for i, batch in enumerate(tqdm(loader, total=len(test), desc="light (test)")):
         view_id = batch["id"][0]
-        box = true_box(source_root, view_id)
+        box = true_box(source_root, view_id) if boxes is None else boxes[i]
         lamps = room_lamps(source_root, view_id)
         cells = ceiling_lamps(lamps, box, grid)
         total = cells.reshape(-1, 3).sum(0)  # the lamps' radiance summed over cells: spread by a placement

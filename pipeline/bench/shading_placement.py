@@ -23,7 +23,9 @@ dark albedo and the ceiling itself, which no ceiling lamp lights, left out), ref
 `--trim` share of pixels the model explains worst (specular highlights of glossy surfaces, shadows of
 furniture). With `--material` the fit reads a trained MaterialNet's albedo, normals, material and depth
 (times its export's `depth_scale`) instead, as a deployed fit would (`--predicted` takes only some of
-them, to find which map's error costs the fit); the cells and the scoring stay on the true box.
+them, to find which map's error costs the fit). The ceiling's cells are on the room file's box, or with
+`--box estimated` on the box `ops.roombox` finds from the fit's own depth and normals, which the
+placements and the complete source below then use too: what a deployed fit could do.
 
 A least-squares fit is a point estimate, and the light's squared error punishes a lamp put in the wrong
 cell twice; the placement used is the fit's shrunk towards the training rooms' mean placement, the
@@ -67,7 +69,7 @@ from pipeline.bench.lamp_placement import (
     paired_differences,
     placement_scores,
 )
-from pipeline.bench.roombox_floor import true_box
+from pipeline.bench.roombox_floor import estimated_box, true_box
 from pipeline.bench.visible_light import TEXTURE_SIZE, box_texels, observed, room_lamps, seen_lookup
 from pipeline.ops.camera import backproject_views
 from pipeline.ops.roombox import OTHER_AXES
@@ -269,27 +271,25 @@ def training_mean_placement(data_dir: Path, source_root: Path, grid: int) -> tor
 SEEN_ONLY = "seen texels, the rest at the image mean"
 SEEN_AND_FIT = "seen texels, shading-fit lamps, the rest at the image mean"
 NETWORK = "trained out-of-view branch"
+BOX_KINDS = ("true", "estimated")
 WEIGHTS = tuple(k / 10 for k in range(11))  # the fit's weights against the mean placement tried on validation
 
 
 class CompleteSources:
-    """The out-of-view light with nothing true but the box (`lamp_placement.light_scores`' extra sources):
-    each direction that leaves the true box through a texel the camera saw takes what it saw there
-    (`visible_light.observed` on the ground-truth G-buffers, `visible_light.TEXTURE_SIZE` texels a side);
-    an unseen one through the ceiling its cell's radiance in `lamps` (N, grid * grid, 3) plus the image's
-    mean; any other the image's mean. Beside it the same without the lamps, and a trained LightNet's
-    branch when `system` is given."""
+    """The out-of-view light with nothing true but what the fit saw (`lamp_placement.light_scores`' extra
+    sources): each direction that leaves the view's box (`boxes`, per view) through a texel the camera saw
+    takes what it saw there (`seen`, per view: `visible_light.observed` on the fit's own depth and normals,
+    `visible_light.TEXTURE_SIZE` texels a side); an unseen one through the ceiling its cell's radiance in
+    `lamps` (N, grid * grid, 3) plus the image's mean; any other the image's mean. Beside it the same
+    without the lamps, and a trained LightNet's branch on its own G-buffers when `system` is given."""
 
-    def __init__(self, source_root: Path, grid: int, lamps: torch.Tensor, system=None):
-        self.source_root, self.grid, self.lamps, self.system = source_root, grid, lamps, system
+    def __init__(self, grid: int, lamps: torch.Tensor, boxes: list, seen: list, system=None):
+        self.grid, self.lamps, self.boxes, self.seen, self.system = grid, lamps, boxes, seen, system
         self.names = (SEEN_ONLY, SEEN_AND_FIT) + ((NETWORK,) if system is not None else ())
-        self._seen: tuple | None = None  # (view index, what the camera saw of its box)
 
     def __call__(self, i: int, batch: dict, gb: dict, r: dict) -> dict:
-        box = true_box(self.source_root, batch["id"][0])
-        if self._seen is None or self._seen[0] != i:  # once per view, for both probe kinds
-            self._seen = (i, observed(batch, gb, box, TEXTURE_SIZE))
-        values, was_seen = seen_lookup(self._seen[1], box, r["origin"], r["direction"], TEXTURE_SIZE)
+        box = self.boxes[i]
+        values, was_seen = seen_lookup(self.seen[i], box, r["origin"], r["direction"], TEXTURE_SIZE)
         index = box_texels(box, r["origin"], r["direction"], self.grid)
         ceiling = (index // (self.grid * self.grid)) == CEILING
         image_mean = batch["im"][0].double().clamp(min=0).mean((1, 2)).expand(len(index), 3)
@@ -309,16 +309,31 @@ def _finite_stat(stat, values: list[float]) -> float | None:
     return float(stat(finite)) if finite else None
 
 
+def view_box(kind: str, source_root: Path, maps: dict):
+    """The box a view's fit and scoring use: the room file's (`true`) or the one `ops.roombox` finds from
+    the fit's own depth and normals (`estimated`, `roombox_floor.estimated_box`)."""
+    if kind == "true":
+        return true_box(source_root, maps["id"])
+    return estimated_box({**maps, "fov_x_deg": float(maps["fov_x_deg"])})
+
+
 def fit_split(data, source_root: Path, grid: int, options: dict, material=None) -> dict:
-    """Every view of `data` fitted (`fit_view`; `options`: sub, pixels, trim, seed, bounce): the true and
-    fitted cell radiance (N, grid * grid, 3) and the fit's statistics. `material`: (MaterialNet, depth
-    scale, the maps it replaces) whose maps replace the truth in the fit."""
-    true_cells, fitted, residuals, used, direct_share = [], [], [], [], []
+    """Every view of `data` fitted (`fit_view`; `options`: sub, pixels, trim, seed, bounce, box): the true
+    and fitted cell radiance (N, grid * grid, 3) on each view's box, the boxes, what the camera saw of
+    each (`visible_light.observed`, `TEXTURE_SIZE` texels a side) and the fit's statistics. `material`:
+    (MaterialNet, depth scale, the maps it replaces) whose maps replace the truth in the fit."""
+    from pipeline.bench.blend_floor import ground_truth_gbuffers
+    from pipeline.data.datasets import collate_views
+
+    true_cells, fitted, residuals, used, direct_share, boxes, seen = [], [], [], [], [], [], []
     for i in tqdm(range(len(data)), desc="shading fit"):
         item = data[i]
-        box = true_box(source_root, item["id"])
-        true_cells.append(ceiling_lamps(room_lamps(source_root, item["id"]), box, grid).reshape(-1, 3))
         maps = item if material is None else predicted_maps(item, *material)
+        box = view_box(options["box"], source_root, maps)
+        boxes.append(box)
+        true_cells.append(ceiling_lamps(room_lamps(source_root, item["id"]), box, grid).reshape(-1, 3))
+        batch = collate_views([{k: v for k, v in maps.items() if k != "light"}])
+        seen.append(observed(batch, ground_truth_gbuffers(batch), box, TEXTURE_SIZE))
         px = shading_pixels(maps, box, options["pixels"], options["seed"] + i)
         bounce = bounce_terms(maps, box, px) if options["bounce"] and len(px["point"]) else None
         fit = fit_view(px, box, grid, options["sub"], options["trim"], bounce)
@@ -336,6 +351,8 @@ def fit_split(data, source_root: Path, grid: int, options: dict, material=None) 
         "residuals": residuals,
         "used": used,
         "direct_share": direct_share,
+        "boxes": boxes,
+        "seen": seen,
     }
 
 
@@ -364,6 +381,7 @@ def run(
     light_net=None,
     bounce=True,
     predicted=PREDICTABLE,
+    box="true",
 ) -> dict:
     from torch.utils.data import Subset
 
@@ -379,6 +397,8 @@ def run(
             f"--grid {grid}, --sub {sub}, --pixels {pixels}, --trim {trim}: need grid >= 1, sub >= 1, "
             "pixels > grid^2 and 0 <= trim < 0.5"
         )
+    if box not in BOX_KINDS:
+        raise ValueError(f"--box {box}: choose one of {', '.join(BOX_KINDS)}")
     if not predicted or any(k not in PREDICTABLE for k in predicted):
         raise ValueError(f"--predicted {','.join(predicted)}: choose some of {','.join(PREDICTABLE)}")
     test, val = ShardDataset(data_dir, "test", lighting=True), ShardDataset(data_dir, "val", lighting=True)
@@ -394,11 +414,11 @@ def run(
 
         net, blob = load_material_export(material)
         maps = (net, float(blob["depth_scale"]), tuple(predicted))
-    options = {"sub": sub, "pixels": pixels, "trim": trim, "seed": seed, "bounce": bool(bounce)}
+    options = {"sub": sub, "pixels": pixels, "trim": trim, "seed": seed, "bounce": bool(bounce), "box": box}
     # the fit's weight against the mean placement and its energy scale, both chosen on the validation views
     fits_val = fit_split(val, source_root, grid, options, maps)
     tried = {f"{w:.1f}": shrunk(fits_val["fitted"], prior, w, grid) for w in WEIGHTS}
-    val_light, _ = light_scores(val, source_root, grid, tried)
+    val_light, _ = light_scores(val, source_root, grid, tried, boxes=fits_val["boxes"])
     val_error = {w: 0.5 * (row["surf"]["nmse"] + row["free"]["nmse"]) for w, row in val_light.items() if w in tried}
     weight = float(min(val_error, key=val_error.get))
     scale = energy_scale(fits_val)
@@ -427,6 +447,7 @@ def run(
         "trim": trim,
         "seed": seed,
         "bounce": bool(bounce),
+        "box": box,
         "bounce_texels": BOUNCE_TEXELS if bounce else None,
         "gbuffers": "ground truth"
         if material is None
@@ -458,9 +479,11 @@ def run(
         },
     }
     system = None if light_net is None else network_system(light_net, material)
-    complete = CompleteSources(source_root, grid, lamps, system)
+    complete = CompleteSources(grid, lamps, fits["boxes"], fits["seen"], system)
     report["light_net"] = None if light_net is None else str(light_net)
-    report["light"], per_view = light_scores(test, source_root, grid, placements, complete.names, complete)
+    report["light"], per_view = light_scores(
+        test, source_root, grid, placements, complete.names, complete, fits["boxes"]
+    )
     report["differences"] = paired_differences(per_view, "training rooms' mean")
     if system is not None:
         report["differences"].update(paired_differences(per_view, NETWORK))
@@ -531,6 +554,9 @@ def main(argv=None) -> None:
         "--predicted",
         default=",".join(PREDICTABLE),
         help="with --material, the maps taken from it (the rest stay true): which error costs the fit",
+    )
+    p.add_argument(
+        "--box", default="true", choices=BOX_KINDS, help="the room's box: its file's, or found from the fit's maps"
     )
     p.add_argument("--no-bounce", action="store_true", help="leave the walls' bounce light out of the fit")
     p.add_argument("--name", default="shading_placement")

@@ -163,6 +163,12 @@ def test_runs_on_the_micro_data(micro_shards, micro_exports, tmp_path):
         - rows["trained out-of-view branch"]["surface nMSE"]
     )
     assert d["diff"] == pytest.approx(expected, rel=1e-6, abs=1e-9)
+    estimated = sp.run(str(micro_shards), grid=2, sub=2, pixels=200, views=2, box="estimated")
+    assert estimated["box"] == "estimated" and all(
+        math.isfinite(row["surface nMSE"]) for row in estimated["summary"]["each placement"]
+    )
+    with pytest.raises(ValueError, match="--box floor"):
+        sp.run(str(micro_shards), box="floor")
     with pytest.raises(ValueError, match="--predicted colour"):
         sp.run(str(micro_shards), material=micro_exports / "material.pt", predicted=("colour",))
     with pytest.raises(ValueError, match="--pixels 4"):
@@ -184,10 +190,12 @@ def test_fitted_lamps_fill_only_the_unseen_ceiling(micro_shards):
     r = view_rays(batch, gb, "surf")
     grid = 2
     glow = torch.tensor([1.0, 2.0, 3.0], dtype=torch.float64)
-    sources = sp.CompleteSources(source_root, grid, glow.expand(1, grid * grid, 3).clone())(0, batch, gb, r)
-    added = sources[sp.SEEN_AND_FIT] - sources[sp.SEEN_ONLY]
     box = sp.true_box(source_root, batch["id"][0])
-    _, was_seen = seen_lookup(observed(batch, gb, box, TEXTURE_SIZE), box, r["origin"], r["direction"], TEXTURE_SIZE)
+    seen = observed(batch, gb, box, TEXTURE_SIZE)
+    lamps = glow.expand(1, grid * grid, 3).clone()
+    sources = sp.CompleteSources(grid, lamps, [box], [seen])(0, batch, gb, r)
+    added = sources[sp.SEEN_AND_FIT] - sources[sp.SEEN_ONLY]
+    _, was_seen = seen_lookup(seen, box, r["origin"], r["direction"], TEXTURE_SIZE)
     ceiling = box_texels(box, r["origin"], r["direction"], grid) // (grid * grid) == 3
     lit = ceiling & ~was_seen
     assert lit.any() and (~lit).any()
