@@ -563,25 +563,21 @@ def main(argv=None) -> None:
     add_threads_option(p)
     a = p.parse_args(argv)
     apply_threads(a.threads)
-    print(
-        publish(
-            a.name,
-            run(
-                a.data_dir,
-                a.grid,
-                a.sub,
-                a.pixels,
-                a.trim,
-                a.seed,
-                a.views,
-                a.material,
-                a.light_net,
-                not a.no_bounce,
-                tuple(a.predicted.split(",")),
-            ),
-            plot,
-        )
+    report = run(
+        a.data_dir,
+        grid=a.grid,
+        sub=a.sub,
+        pixels=a.pixels,
+        trim=a.trim,
+        seed=a.seed,
+        views=a.views,
+        material=a.material,
+        light_net=a.light_net,
+        bounce=not a.no_bounce,
+        predicted=tuple(a.predicted.split(",")),
+        box=a.box,
     )
+    print(publish(a.name, report, plot))
 
 
 if __name__ == "__main__":
