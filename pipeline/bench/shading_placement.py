@@ -523,8 +523,9 @@ def plot(report: dict, path) -> None:
     ax.invert_yaxis()
     ax.legend(fontsize=7)
     ax.set_title(
-        f"light on {report['test_views']} test views, lamps placed from the visible shading "
-        f"({report['grid']} x {report['grid']} ceiling cells; G-buffers: {report['gbuffers']})",
+        f"light on {report['test_views']} test views, lamps placed from the visible shading\n"
+        f"{report['grid']} x {report['grid']} cells on the {report.get('box', 'true')} box's ceiling; "
+        f"G-buffers: {report['gbuffers']}",
         fontsize=9,
     )
     ex = report["examples"]
