@@ -226,6 +226,27 @@ def paired_differences(per_view: dict, reference: str) -> dict:
     return out
 
 
+def placement_summary(report: dict, differences_title: str) -> dict:
+    """The page's tables of a placement report: each row's light errors and placement scores (from its
+    `light` and `placement`), and its paired `differences` under `differences_title`."""
+    return {
+        "each placement": [
+            {
+                "placement": name,
+                "surface nMSE": row.get("surf", {}).get("nmse"),
+                "free nMSE": row.get("free", {}).get("nmse"),
+                "cross-entropy (nats)": report["placement"].get(name, {}).get("cross_entropy"),
+                "share on lamp cells": report["placement"].get(name, {}).get("share_on_lamp_cells"),
+            }
+            for name, row in report["light"].items()
+        ],
+        differences_title: [
+            {"difference": name, "nMSE": d["diff"], "lo": d["lo"], "hi": d["hi"]}
+            for name, d in report["differences"].items()
+        ],
+    }
+
+
 def run(data_dir="outputs/preprocess", grid=8, height=60, epochs=60, seed=0, seeds=3) -> dict:
     from pipeline.data.datasets import ShardDataset
 
@@ -274,22 +295,9 @@ def run(data_dir="outputs/preprocess", grid=8, height=60, epochs=60, seed=0, see
     }
     report["light"], per_view = light_scores(test_set, source_root, grid, placements)
     report["differences"] = paired_differences(per_view, "training rooms' mean")
-    report["summary"] = {
-        "each placement": [
-            {
-                "placement": name,
-                "surface nMSE": row.get("surf", {}).get("nmse"),
-                "free nMSE": row.get("free", {}).get("nmse"),
-                "cross-entropy (nats)": report["placement"].get(name, {}).get("cross_entropy"),
-                "share on lamp cells": report["placement"].get(name, {}).get("share_on_lamp_cells"),
-            }
-            for name, row in report["light"].items()
-        ],
-        "nMSE against the training rooms' mean placement, paired by test view (95 % bootstrap)": [
-            {"difference": name, "nMSE": d["diff"], "lo": d["lo"], "hi": d["hi"]}
-            for name, d in report["differences"].items()
-        ],
-    }
+    report["summary"] = placement_summary(
+        report, "nMSE against the training rooms' mean placement, paired by test view (95 % bootstrap)"
+    )
     report["examples"] = {
         "target": t_test[:4].view(-1, grid, grid).tolist(),
         "from the photo": predicted[:4].view(-1, grid, grid).tolist(),

@@ -68,6 +68,7 @@ from pipeline.bench.lamp_placement import (
     luminance,
     paired_differences,
     placement_scores,
+    placement_summary,
 )
 from pipeline.bench.roombox_floor import estimated_box, true_box
 from pipeline.bench.visible_light import TEXTURE_SIZE, box_texels, observed, room_lamps, seen_lookup
@@ -487,22 +488,7 @@ def run(
     report["differences"] = paired_differences(per_view, "training rooms' mean")
     if system is not None:
         report["differences"].update(paired_differences(per_view, NETWORK))
-    report["summary"] = {
-        "each placement": [
-            {
-                "placement": name,
-                "surface nMSE": row.get("surf", {}).get("nmse"),
-                "free nMSE": row.get("free", {}).get("nmse"),
-                "cross-entropy (nats)": report["placement"].get(name, {}).get("cross_entropy"),
-                "share on lamp cells": report["placement"].get(name, {}).get("share_on_lamp_cells"),
-            }
-            for name, row in report["light"].items()
-        ],
-        "nMSE differences, paired by test view (95 % bootstrap)": [
-            {"difference": name, "nMSE": d["diff"], "lo": d["lo"], "hi": d["hi"]}
-            for name, d in report["differences"].items()
-        ],
-    }
+    report["summary"] = placement_summary(report, "nMSE differences, paired by test view (95 % bootstrap)")
     report["examples"] = {
         "target": target[:4].view(-1, grid, grid).tolist(),
         "shading fit": distribution(fitted[:4].view(-1, grid, grid, 3)).view(-1, grid, grid).tolist(),
