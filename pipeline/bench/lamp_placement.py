@@ -70,9 +70,10 @@ def luminance(rgb: torch.Tensor) -> torch.Tensor:
 
 
 class PlacementNet(nn.Module):
-    """Photo (B, 3, H, W), log radiance over its mean -> logits (B, grid * grid) over the ceiling's cells."""
+    """Photo (B, 3, H, W), log radiance over its mean -> logits (B, grid * grid) over the ceiling's cells;
+    with `extra` > 0, that many more features per view (B, extra) join the pooled ones before the head."""
 
-    def __init__(self, grid: int, width: int = 32):
+    def __init__(self, grid: int, width: int = 32, extra: int = 0):
         super().__init__()
         self.features = nn.Sequential(
             nn.Conv2d(3, width // 2, 3, 2, 1),
@@ -83,10 +84,11 @@ class PlacementNet(nn.Module):
             nn.ReLU(),
             nn.AdaptiveAvgPool2d((4, 5)),  # keeps where in the photo
         )
-        self.head = nn.Linear(width * 20, grid * grid)
+        self.head = nn.Linear(width * 20 + extra, grid * grid)
 
-    def forward(self, x: torch.Tensor) -> torch.Tensor:
-        return self.head(self.features(x).flatten(1))
+    def forward(self, x: torch.Tensor, extra: torch.Tensor | None = None) -> torch.Tensor:
+        pooled = self.features(x).flatten(1)
+        return self.head(pooled if extra is None else torch.cat([pooled, extra], 1))
 
 
 def photo_input(im: torch.Tensor, height: int) -> torch.Tensor:
@@ -114,29 +116,39 @@ def distribution(cells: torch.Tensor) -> torch.Tensor:
     return torch.where(total > 0, w / total.clamp(min=1e-12), torch.full_like(w, 1 / w.shape[1]))
 
 
-def train(x, target, x_val, target_val, grid: int, epochs: int, seed: int) -> tuple[PlacementNet, list[float]]:
+def mirrored_cells(cells: torch.Tensor, grid: int) -> torch.Tensor:
+    """Per-cell values (N, k * grid * grid) of k ceiling maps, each mirrored left-right (view x <-> box x)."""
+    return cells.view(len(cells), -1, grid, grid).flip(-1).reshape(len(cells), -1)
+
+
+def train(
+    x, target, x_val, target_val, grid: int, epochs: int, seed: int, extra=None, extra_val=None
+) -> tuple[PlacementNet, list[float]]:
     """PlacementNet fitted to distributions target (N, grid * grid), mirrored views included; the epoch
     whose validation cross-entropy is lowest is kept (252 rooms overfit long before the last epoch).
-    Returns the net and the validation cross-entropy after each epoch."""
+    `extra` (N, k * grid * grid), `extra_val`: k more ceiling maps per view as input beside the photo
+    (mirrored with it). Returns the net and the validation cross-entropy after each epoch."""
     import copy
 
     torch.manual_seed(seed)
-    net = PlacementNet(grid)
+    net = PlacementNet(grid, extra=0 if extra is None else extra.shape[1])
     opt = torch.optim.AdamW(net.parameters(), lr=1e-3, weight_decay=1e-4)
-    mirrored = target.view(-1, grid, grid).flip(-1).reshape(len(target), -1)  # view x <-> box x
-    xs, ts = torch.cat([x, x.flip(-1)]), torch.cat([target, mirrored])
+    xs, ts = torch.cat([x, x.flip(-1)]), torch.cat([target, mirrored_cells(target, grid)])
+    es = None if extra is None else torch.cat([extra, mirrored_cells(extra, grid)]).float()
     g = torch.Generator().manual_seed(seed)
     best, best_state, curve = math.inf, copy.deepcopy(net.state_dict()), []
     for _ in tqdm(range(epochs), desc="placement net"):
         net.train()
         for idx in torch.randperm(len(xs), generator=g).split(16):
-            loss = -(ts[idx] * F.log_softmax(net(xs[idx]), -1)).sum(1).mean()
+            logits = net(xs[idx], None if es is None else es[idx])
+            loss = -(ts[idx] * F.log_softmax(logits, -1)).sum(1).mean()
             opt.zero_grad()
             loss.backward()
             opt.step()
         net.eval()
         with torch.no_grad():
-            curve.append(float(-(target_val * F.log_softmax(net(x_val), -1)).sum(1).mean()))
+            logits = net(x_val, None if extra_val is None else extra_val.float())
+            curve.append(float(-(target_val * F.log_softmax(logits, -1)).sum(1).mean()))
         if curve[-1] < best:
             best, best_state = curve[-1], copy.deepcopy(net.state_dict())
     net.load_state_dict(best_state)

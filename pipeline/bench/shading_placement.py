@@ -42,8 +42,11 @@ calibrated energy. Then the whole out-of-view light with nothing true but the bo
 texels the camera saw, the calibrated lamps on the unseen ceiling, the image's mean elsewhere), with and
 without the lamps, and with `--light-net` a trained LightNet's branch on the same directions
 (`blend_floor.network_sources`); every row paired by test view against the training rooms' mean
-placement and the branch, with bootstrap intervals. Writes reports/bench/shading_placement.json (or
-`--name`) and a PNG of the light errors and the first views' true and fitted ceilings.
+placement and the branch, with bootstrap intervals. With `--learned-seeds N`, `bench.lamp_placement`'s
+network is trained on the training views (whose fits are made alike) from the photo alone and from the
+photo and the fit's placement, N seeds each: can a network learn when to trust the fit? Writes
+reports/bench/shading_placement.json (or `--name`) and a PNG of the light errors and the first views'
+true and fitted ceilings.
 """
 
 from __future__ import annotations
@@ -67,8 +70,10 @@ from pipeline.bench.lamp_placement import (
     light_scores,
     luminance,
     paired_differences,
+    photo_input,
     placement_scores,
     placement_summary,
+    train,
 )
 from pipeline.bench.roombox_floor import estimated_box, true_box
 from pipeline.bench.visible_light import TEXTURE_SIZE, box_texels, observed, room_lamps, seen_lookup
@@ -273,6 +278,7 @@ SEEN_ONLY = "seen texels, the rest at the image mean"
 SEEN_AND_FIT = "seen texels, shading-fit lamps, the rest at the image mean"
 NETWORK = "trained out-of-view branch"
 BOX_KINDS = ("true", "estimated")
+LEARNED_INPUT_HEIGHT = 60  # photo rows a placement network sees (as `bench.lamp_placement`'s default)
 WEIGHTS = tuple(k / 10 for k in range(11))  # the fit's weights against the mean placement tried on validation
 
 
@@ -370,6 +376,43 @@ def energy_scale(fits: dict) -> float:
     return float(torch.median(true[both] / fit[both])) if both.any() else 1.0
 
 
+def fit_features(fits: dict, grid: int) -> torch.Tensor:
+    """(N, 2 grid^2) a placement network's extra input per view: the fit's placement and its log."""
+    share = distribution(fits["fitted"].view(-1, grid, grid, 3)).float()
+    return torch.cat([share, torch.log(share + 1e-3)], 1)
+
+
+def learned_placements(splits: dict, fits: dict, grid: int, seeds: int, epochs: int, height: int) -> tuple:
+    """Per seed, `lamp_placement.PlacementNet` trained on the training views from the photo alone and from
+    the photo and the fit (`fit_features`), the epoch of lowest validation cross-entropy kept: their test
+    placements {name: (N, grid^2)} and each run's kept epoch."""
+    inputs = {
+        name: torch.stack([photo_input(data[i]["im"], height) for i in range(len(data))])
+        for name, data in splits.items()
+    }
+    targets = {name: distribution(f["true"].view(-1, grid, grid, 3)).float() for name, f in fits.items()}
+    extra = {name: fit_features(f, grid) for name, f in fits.items()}
+    out, kept = {}, {}
+    for seed in range(seeds):
+        for label, use_fit in (("from the photo", False), ("from the photo and the fit", True)):
+            net, curve = train(
+                inputs["train"],
+                targets["train"],
+                inputs["val"],
+                targets["val"],
+                grid,
+                epochs,
+                seed,
+                extra["train"] if use_fit else None,
+                extra["val"] if use_fit else None,
+            )
+            with torch.no_grad():
+                logits = net(inputs["test"], extra["test"] if use_fit else None)
+            out[f"{label}, seed {seed}"] = torch.softmax(logits, -1).double()
+            kept[f"{label}, seed {seed}"] = int(np.argmin(curve)) + 1
+    return out, kept
+
+
 def run(
     data_dir="outputs/preprocess",
     grid=8,
@@ -383,6 +426,8 @@ def run(
     bounce=True,
     predicted=PREDICTABLE,
     box="true",
+    learned_seeds=0,
+    epochs=60,
 ) -> dict:
     from torch.utils.data import Subset
 
@@ -398,6 +443,8 @@ def run(
             f"--grid {grid}, --sub {sub}, --pixels {pixels}, --trim {trim}: need grid >= 1, sub >= 1, "
             "pixels > grid^2 and 0 <= trim < 0.5"
         )
+    if learned_seeds < 0 or epochs < 1:
+        raise ValueError(f"--learned-seeds {learned_seeds}, --epochs {epochs}: need seeds >= 0 and epochs >= 1")
     if box not in BOX_KINDS:
         raise ValueError(f"--box {box}: choose one of {', '.join(BOX_KINDS)}")
     if not predicted or any(k not in PREDICTABLE for k in predicted):
@@ -426,6 +473,18 @@ def run(
 
     fits = fit_split(test, source_root, grid, options, maps)
     fitted = fits["fitted"]
+    learned, kept = {}, {}
+    if learned_seeds > 0:  # placement networks trained on the training views, with and without the fit
+        train_set = ShardDataset(data_dir, "train", lighting=False)
+        fits_train = fit_split(train_set, source_root, grid, options, maps)
+        learned, kept = learned_placements(
+            {"train": train_set, "val": val, "test": test},
+            {"train": fits_train, "val": fits_val, "test": fits},
+            grid,
+            learned_seeds,
+            epochs,
+            LEARNED_INPUT_HEIGHT,
+        )
     target = distribution(fits["true"].view(-1, grid, grid, 3))
     placed = shrunk(fitted, prior, weight, grid)
     lamps = placed[..., None] * (scale * fitted.sum(1, keepdim=True))  # the calibrated energy, placed
@@ -436,6 +495,7 @@ def run(
         "shading fit shrunk to the mean (placement, true energy)": placed,
         "shading fit (its own radiance)": fitted,
         "shading fit shrunk, calibrated energy": lamps,
+        **learned,
     }
     true_energy = luminance(fits["true"]).sum(1)
     has_lamps = true_energy > 0
@@ -469,6 +529,7 @@ def run(
             "definition": "the true lamps' direct light (on the ceiling's cells, no occlusion) over the fitted pixels' "
             "radiance, luminance",
         },
+        "learned": {"seeds": learned_seeds, "epochs": epochs, "kept_epoch": kept} if learned_seeds else None,
         "validation": {
             "mean nMSE (surface and free) by the fit's weight": val_error,
             "chosen weight": weight,
@@ -545,6 +606,13 @@ def main(argv=None) -> None:
     p.add_argument(
         "--box", default="true", choices=BOX_KINDS, help="the room's box: its file's, or found from the fit's maps"
     )
+    p.add_argument(
+        "--learned-seeds",
+        type=int,
+        default=0,
+        help="also train placement networks from the photo, and from the photo and the fit (seeds each)",
+    )
+    p.add_argument("--epochs", type=int, default=60, help="the placement networks' epochs")
     p.add_argument("--no-bounce", action="store_true", help="leave the walls' bounce light out of the fit")
     p.add_argument("--name", default="shading_placement")
     add_threads_option(p)
@@ -563,6 +631,8 @@ def main(argv=None) -> None:
         bounce=not a.no_bounce,
         predicted=tuple(a.predicted.split(",")),
         box=a.box,
+        learned_seeds=a.learned_seeds,
+        epochs=a.epochs,
     )
     print(publish(a.name, report, plot))
 

@@ -53,3 +53,14 @@ def test_runs_on_the_micro_data(micro_shards, tmp_path):
     assert (tmp_path / "l.png").stat().st_size > 5_000
     with pytest.raises(ValueError, match="--seeds 0"):
         lp.run(str(micro_shards), seeds=0)
+
+
+def test_extra_maps_are_mirrored_with_the_photo_and_reach_the_head():
+    cells = torch.arange(2 * 2 * 9, dtype=torch.float32).view(2, 18)  # two views, two 3 x 3 maps each
+    flipped = lp.mirrored_cells(cells, 3)
+    assert flipped[0, :3].tolist() == [2.0, 1.0, 0.0] and flipped[0, 9:12].tolist() == [11.0, 10.0, 9.0]
+    assert torch.equal(lp.mirrored_cells(flipped, 3), cells)
+    net = lp.PlacementNet(3, width=8, extra=18)
+    x = torch.rand(2, 3, 8, 10)
+    assert net(x, cells).shape == (2, 9)
+    assert not torch.allclose(net(x, cells), net(x, torch.zeros_like(cells)))  # the extra input is used

@@ -163,10 +163,16 @@ def test_runs_on_the_micro_data(micro_shards, micro_exports, tmp_path):
         - rows["trained out-of-view branch"]["surface nMSE"]
     )
     assert d["diff"] == pytest.approx(expected, rel=1e-6, abs=1e-9)
+    learned = sp.run(str(micro_shards), grid=2, sub=2, pixels=200, learned_seeds=1, epochs=2)
+    rows = {row["placement"] for row in learned["summary"]["each placement"]}
+    assert {"from the photo, seed 0", "from the photo and the fit, seed 0"} <= rows
+    assert set(learned["learned"]["kept_epoch"].values()) <= {1, 2}
     estimated = sp.run(str(micro_shards), grid=2, sub=2, pixels=200, views=2, box="estimated")
     assert estimated["box"] == "estimated" and all(
         math.isfinite(row["surface nMSE"]) for row in estimated["summary"]["each placement"]
     )
+    with pytest.raises(ValueError, match="--learned-seeds -1"):
+        sp.run(str(micro_shards), learned_seeds=-1)
     with pytest.raises(ValueError, match="--box floor"):
         sp.run(str(micro_shards), box="floor")
     with pytest.raises(ValueError, match="--predicted colour"):
