@@ -317,21 +317,26 @@ def run(data_dir="outputs/preprocess", grid=8, height=60, epochs=60, seed=0, see
     return report
 
 
-def plot(report: dict, path) -> None:
-    fig = Figure(figsize=(11, 5.6))
-    names = list(report["light"])
-    ax = fig.add_subplot(2, 1, 1)
+def light_bars(ax, light: dict, title: str) -> None:
+    """Horizontal bars of each row's surface and free nMSE (`light`: row name -> kind -> {"nmse"})."""
+    names = list(light)
     y = np.arange(len(names))
     for j, kind in enumerate(KINDS):
-        vals = [report["light"][n].get(kind, {}).get("nmse", math.nan) for n in names]
+        vals = [light[n].get(kind, {}).get("nmse", math.nan) for n in names]
         ax.barh(y + 0.4 * j - 0.2, vals, 0.4, label=f"{kind} nMSE")
     ax.set_yticks(y, names, fontsize=8)
     ax.invert_yaxis()
     ax.legend(fontsize=7)
-    ax.set_title(
+    ax.set_title(title, fontsize=9)
+
+
+def plot(report: dict, path) -> None:
+    fig = Figure(figsize=(11, 5.6))
+    light_bars(
+        fig.add_subplot(2, 1, 1),
+        report["light"],
         f"light on {report['test_views']} test views with the lamps' energy placed on the ceiling "
         f"({report['grid']} x {report['grid']} cells)",
-        fontsize=9,
     )
     ex = report["examples"]
     last = report["seeds"][-1]

@@ -61,12 +61,13 @@ import torch
 from matplotlib.figure import Figure
 from tqdm import tqdm
 
-from pipeline.bench.blend_floor import KINDS, network_sources, network_system
+from pipeline.bench.blend_floor import network_sources, network_system
 from pipeline.bench.common import add_threads_option, apply_threads, publish
 from pipeline.bench.lamp_placement import (
     CEILING,
     ceiling_lamps,
     distribution,
+    light_bars,
     light_scores,
     luminance,
     paired_differences,
@@ -560,20 +561,12 @@ def run(
 def plot(report: dict, path) -> None:
     fig = Figure(figsize=(11, 6))
     grid_spec = fig.add_gridspec(2, 8, height_ratios=[1.5, 1])
-    names = list(report["light"])
-    ax = fig.add_subplot(grid_spec[0, :])
-    y = np.arange(len(names))
-    for j, kind in enumerate(KINDS):
-        vals = [report["light"][n].get(kind, {}).get("nmse", math.nan) for n in names]
-        ax.barh(y + 0.4 * j - 0.2, vals, 0.4, label=f"{kind} nMSE")
-    ax.set_yticks(y, names, fontsize=8)
-    ax.invert_yaxis()
-    ax.legend(fontsize=7)
-    ax.set_title(
+    light_bars(
+        fig.add_subplot(grid_spec[0, :]),
+        report["light"],
         f"light on {report['test_views']} test views, lamps placed from the visible shading\n"
         f"{report['grid']} x {report['grid']} cells on the {report.get('box', 'true')} box's ceiling; "
         f"G-buffers: {report['gbuffers']}",
-        fontsize=9,
     )
     ex = report["examples"]
     for i in range(min(4, len(ex["target"]))):
