@@ -154,16 +154,12 @@ def texel_transfer(points: torch.Tensor, normals: torch.Tensor, box, size: int) 
     return areas[None] * cos_surface * cos_texel / r2
 
 
-def bounce_terms(item: dict, box, px: dict) -> dict:
+def bounce_terms(batch: dict, gb: dict, box, px: dict) -> dict:
     """The light the fitted pixels px get from the box's walls and floor (not the ceiling, whose cells are
-    fitted): from the texels the camera saw, at what it saw there (`visible_light.observed` of `item`'s
-    photo on its depth and normals), as a known irradiance (P, 3); from the unseen ones, their summed
+    fitted): from the texels the camera saw, at what it saw there (`visible_light.observed` of the one-view
+    `batch`'s photo on its G-buffers gb), as a known irradiance (P, 3); from the unseen ones, their summed
     transfer (P,) for one unknown radiance."""
-    from pipeline.bench.blend_floor import ground_truth_gbuffers
-    from pipeline.data.datasets import collate_views
-
-    batch = collate_views([{k: v for k, v in item.items() if k != "light"}])
-    seen_radiance, count = observed(batch, ground_truth_gbuffers(batch), box, BOUNCE_TEXELS)
+    seen_radiance, count = observed(batch, gb, box, BOUNCE_TEXELS)
     face = torch.arange(len(count)) // BOUNCE_TEXELS**2
     walls = face != CEILING
     transfer = texel_transfer(px["point"], px["normal"], box, BOUNCE_TEXELS)
@@ -322,7 +318,7 @@ def view_box(kind: str, source_root: Path, maps: dict):
     the fit's own depth and normals (`estimated`, `roombox_floor.estimated_box`)."""
     if kind == "true":
         return true_box(source_root, maps["id"])
-    return estimated_box({**maps, "fov_x_deg": float(maps["fov_x_deg"])})
+    return estimated_box(maps)
 
 
 def fit_split(data, source_root: Path, grid: int, options: dict, material=None) -> dict:
@@ -341,9 +337,10 @@ def fit_split(data, source_root: Path, grid: int, options: dict, material=None) 
         boxes.append(box)
         true_cells.append(ceiling_lamps(room_lamps(source_root, item["id"]), box, grid).reshape(-1, 3))
         batch = collate_views([{k: v for k, v in maps.items() if k != "light"}])
-        seen.append(observed(batch, ground_truth_gbuffers(batch), box, TEXTURE_SIZE))
+        gb = ground_truth_gbuffers(batch)  # the fit's own maps as G-buffers (predicted ones with `material`)
+        seen.append(observed(batch, gb, box, TEXTURE_SIZE))
         px = shading_pixels(maps, box, options["pixels"], options["seed"] + i)
-        bounce = bounce_terms(maps, box, px) if options["bounce"] and len(px["point"]) else None
+        bounce = bounce_terms(batch, gb, box, px) if options["bounce"] and len(px["point"]) else None
         fit = fit_view(px, box, grid, options["sub"], options["trim"], bounce)
         if len(px["point"]):  # how much of what the pixels show the true lamps light directly
             direct = (
