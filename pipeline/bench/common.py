@@ -104,8 +104,12 @@ def started_commit() -> tuple[str | None, bool | None]:
     return _STARTED_AT
 
 
+CODE_FOLDERS = ("pipeline", "stages", "conf")  # what a bench imports or composes: new files there are code too
+
+
 def git_commit() -> tuple[str | None, bool | None]:
-    """(HEAD's SHA, whether tracked files differ from it), or (None, None) outside a git checkout.
+    """(HEAD's SHA, whether the code differs from it: tracked files changed, or files not yet added under
+    `CODE_FOLDERS`, such as a new bench module), or (None, None) outside a git checkout.
 
     `$INVRENDER_SOURCE_COMMIT`, when set, names the commit instead, dirty unknown: a copy of the tree on
     another machine (a device machine's) may carry no .git, or an older one with this tree laid over it,
@@ -117,9 +121,16 @@ def git_commit() -> tuple[str | None, bool | None]:
     try:
         sha = subprocess.run(["git", "rev-parse", "HEAD"], cwd=root, capture_output=True, text=True, check=True)
         dirty = subprocess.run(["git", "diff", "--quiet", "HEAD", "--"], cwd=root, capture_output=True)
+        added = subprocess.run(
+            ["git", "ls-files", "--others", "--exclude-standard", "--", *CODE_FOLDERS],
+            cwd=root,
+            capture_output=True,
+            text=True,
+            check=True,
+        )
     except (OSError, subprocess.CalledProcessError):
         return None, None
-    return sha.stdout.strip(), dirty.returncode != 0
+    return sha.stdout.strip(), dirty.returncode != 0 or bool(added.stdout.strip())
 
 
 def _main_module() -> str:

@@ -638,7 +638,7 @@ BENCH_HEADLINES = {
 
 
 # benches whose figure the page shows (the others' PNGs lie beside their JSONs)
-BENCH_FIGURES = ("real_photo", "insertion_figure", "pipeline_time")
+BENCH_FIGURES = ("real_photo", "insertion_figure", "pipeline_time", "nonbox_rooms")
 
 
 def section_benches(reports: Path, profile: str) -> list[str]:

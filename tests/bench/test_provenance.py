@@ -74,3 +74,24 @@ def test_a_copied_tree_names_the_commit_it_was_copied_from(monkeypatch, tmp_path
     assert common.git_commit() == ("c" * 40, None)
     monkeypatch.setattr(common, "project_root", lambda: Path(__file__).parent)  # inside a checkout too
     assert common.git_commit() == ("c" * 40, None)
+
+
+def test_a_new_code_file_not_yet_added_makes_the_tree_dirty(monkeypatch, tmp_path):
+    # a bench run from a module not yet committed ran code its commit does not hold
+    import subprocess
+
+    monkeypatch.delenv("INVRENDER_SOURCE_COMMIT", raising=False)
+    monkeypatch.setattr(common, "project_root", lambda: tmp_path)
+    git = ["git", "-c", "user.email=a@b", "-c", "user.name=a"]
+    subprocess.run([*git, "init", "-q"], cwd=tmp_path, check=True)
+    (tmp_path / "pipeline").mkdir()
+    (tmp_path / "pipeline" / "a.py").write_text("x = 1\n")
+    (tmp_path / ".gitignore").write_text("*.log\n")
+    subprocess.run([*git, "add", "."], cwd=tmp_path, check=True)
+    subprocess.run([*git, "commit", "-q", "-m", "a"], cwd=tmp_path, check=True)
+    assert common.git_commit()[1] is False
+    (tmp_path / "notes.txt").write_text("not code")  # outside the code folders
+    (tmp_path / "pipeline" / "run.log").write_text("ignored")
+    assert common.git_commit()[1] is False
+    (tmp_path / "pipeline" / "bench.py").write_text("y = 2\n")
+    assert common.git_commit()[1] is True
