@@ -310,7 +310,8 @@ def _room_statistics(root: Path, synth: dict) -> dict:
 
 
 def _samples(shards: Path, per_group: int = 2) -> dict:
-    """The first views' photos of each group, tone-mapped (H, W, 3 lists), for the figure."""
+    """The first views' photos of each group for the figure: {group: [{id, png}]}, each photo tone-mapped
+    to 8 bits and PNG-encoded (base64 text: a few kilobytes, where pixel lists would bloat the JSON)."""
     from pipeline.data.datasets import ShardDataset
 
     data = ShardDataset(shards, "test", lighting=False)
@@ -319,9 +320,31 @@ def _samples(shards: Path, per_group: int = 2) -> dict:
         item = data[i]
         picks = out.setdefault(group_of(item["id"]), [])
         if len(picks) < per_group:
-            im = item["im"].permute(1, 2, 0).numpy()
-            picks.append({"id": item["id"], "image": np.clip((im / (1 + im)) ** (1 / 2.2), 0, 1).round(3).tolist()})
+            im = item["im"].clamp(min=0).permute(1, 2, 0).numpy()
+            picks.append({"id": item["id"], "png": png_text(np.clip((im / (1 + im)) ** (1 / 2.2), 0, 1))})
     return out
+
+
+def png_text(image: np.ndarray) -> str:
+    """An (H, W, 3) image in [0, 1] as base64 PNG text (8 bits a channel)."""
+    import base64
+    import io
+
+    from PIL import Image
+
+    buffer = io.BytesIO()
+    Image.fromarray((image * 255).round().astype(np.uint8)).save(buffer, format="PNG")
+    return base64.b64encode(buffer.getvalue()).decode("ascii")
+
+
+def png_image(text: str) -> np.ndarray:
+    """`png_text`'s image back, (H, W, 3) uint8."""
+    import base64
+    import io
+
+    from PIL import Image
+
+    return np.asarray(Image.open(io.BytesIO(base64.b64decode(text))).convert("RGB"))
 
 
 def plot(report: dict, path) -> None:
@@ -333,7 +356,7 @@ def plot(report: dict, path) -> None:
     for j, g in enumerate(groups):
         for k, sample in enumerate(report["samples"].get(g, [])[:rows]):
             ax = fig.add_subplot(spec[k, 2 * j : 2 * j + 2])
-            ax.imshow(np.asarray(sample["image"]))
+            ax.imshow(png_image(sample["png"]))
             ax.set_axis_off()
             if k == 0:
                 ax.set_title(g.replace("_", " "), fontsize=10)
@@ -362,8 +385,10 @@ def plot(report: dict, path) -> None:
             ax.bar(x + (2 * i + k) * width, values, width, hatch=hatch, color=f"C{i}", alpha=0.9, label=label)
     ax.axhline(1.0, color="0.5", lw=0.8)
     ax.set_xticks(x + width * (2 * len(names) - 1) / 2, [g.replace("_", " ") for g in groups], fontsize=8)
-    ax.set_ylabel("light nMSE (mean over views)")
-    ax.legend(fontsize=7)
+    ax.set_ylabel("light nMSE (mean over views; 1: no better than zero light)")
+    shown = [report["groups_scored"][g][n][m] for g in groups for n in names for m in VIEW_METRICS[1:]]
+    ax.set_ylim(max(0.0, min(shown) - 0.15), max(1.05, max(shown) + 0.05))
+    ax.legend(fontsize=7, loc="lower left", ncol=2)
     fig.suptitle("Held-out rooms by shape: each group's first views; insertion (95 % bootstrap) and light error")
     fig.tight_layout()
     fig.savefig(path, dpi=110)

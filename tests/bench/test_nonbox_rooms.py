@@ -59,6 +59,8 @@ def test_nonbox_rooms_renders_scores_and_pairs_by_group(micro_shards, micro_expo
         ("box", "scaled constant"),
     ]
     assert len(each) == 12 and all(p["diff"] == pytest.approx(0.0, abs=1e-9) for p in paired)
+    sample = report["samples"]["l_shaped"][0]
+    assert sample["id"] == "l_shaped_0000/000" and nonbox_rooms.png_image(sample["png"]).shape == (48, 64, 3)
     nonbox_rooms.plot(report, tmp_path / "n.png")
     assert (tmp_path / "n.png").stat().st_size > 10_000
 
