@@ -139,6 +139,26 @@ def stress_data_dir(root: Path, out: Path, main_data_dir: Path, height: int, wid
     return out
 
 
+def check_inputs(exports: dict[str, str], main_data_dir: Path, material_path: Path, keep: Path | None) -> None:
+    """Refuse, naming the option, what would fail only after the rooms are rendered: a missing export or
+    MaterialNet, main data without a manifest or a training or validation split, a `--keep` folder that
+    already holds rooms."""
+    for name, path in exports.items():
+        if not Path(path).is_file():
+            raise FileNotFoundError(f"--light-net {name}: {path} not found")
+    if not material_path.is_file():
+        raise FileNotFoundError(f"--material {material_path}: not found")
+    manifest = main_data_dir / "manifest.json"
+    if not manifest.is_file():
+        raise FileNotFoundError(f"--data-dir {main_data_dir}: no manifest.json (run `dvc repro preprocess`)")
+    splits = json.loads(manifest.read_text()).get("splits", {})
+    for split in ("train", "val"):
+        if split not in splits:
+            raise ValueError(f"{manifest}: has no {split} split to score the baselines with")
+    if keep is not None and any((keep / sub).exists() for sub in ("rooms", "shards")):
+        raise FileExistsError(f"--keep {keep}: already holds rooms or shards; give a new or empty folder")
+
+
 def link_main_splits(out: Path, main_data_dir: Path) -> None:
     """Link the training and validation shards of `main_data_dir` into the shard folder `out` and list
     them in its manifest: the scaled-constant baseline reads the training split."""
@@ -221,8 +241,9 @@ def run(
         raise ValueError(f"--groups {' '.join(groups)}: choose some of {', '.join(GROUPS)}")
     if rooms < 1:
         raise ValueError(f"--rooms {rooms}: need at least 1")
-    configs = group_configs(profile, groups, rooms)
     main_dir = Path(data_dir)
+    check_inputs(exports, main_dir, Path(material_path), Path(keep) if keep else None)  # before the long render
+    configs = group_configs(profile, groups, rooms)
     report = {"exports": dict(exports), "groups": list(groups), "rooms": rooms, "seed": seed, "profile": profile}
     with tempfile.TemporaryDirectory() as scratch:
         work = Path(keep) if keep else Path(scratch)

@@ -76,10 +76,27 @@ def test_nonbox_rooms_refuses_bad_options(micro_exports, tmp_path):
     ):
         with pytest.raises(ValueError, match=match):
             nonbox_rooms.run(**kwargs)
+    material = str(micro_exports / "material.pt")
     empty = tmp_path / "main"
     empty.mkdir()
+    kept = tmp_path / "kept"
+    (kept / "rooms").mkdir(parents=True)
+    for kwargs, error, match in (  # refused before any room is rendered
+        ({"exports": {"a": str(tmp_path / "x.pt")}}, FileNotFoundError, "--light-net a: .*x.pt not found"),
+        ({"exports": light, "material_path": str(tmp_path / "m.pt")}, FileNotFoundError, "--material .*m.pt"),
+        ({"exports": light, "data_dir": str(empty)}, FileNotFoundError, "--data-dir .*main: no manifest.json"),
+    ):
+        with pytest.raises(error, match=match):
+            nonbox_rooms.run(**{"material_path": material, **kwargs})
     (empty / "manifest.json").write_text(json.dumps({"splits": {"test": {}}}))
-    (tmp_path / "shards").mkdir()
-    (tmp_path / "shards" / "manifest.json").write_text(json.dumps({"splits": {}}))
     with pytest.raises(ValueError, match="has no train split"):
-        nonbox_rooms.link_main_splits(tmp_path / "shards", empty)
+        nonbox_rooms.run(light, data_dir=str(empty), material_path=material)
+    (empty / "manifest.json").write_text(json.dumps({"splits": {"train": {}, "val": {}}}))
+    with pytest.raises(FileExistsError, match="--keep .*kept: already holds"):
+        nonbox_rooms.run(light, data_dir=str(empty), material_path=material, keep=str(kept))
+    assert not (kept / "shards").exists()
+    for folder, splits in (("shards", {}), ("test_only", {"test": {}})):
+        (tmp_path / folder).mkdir()
+        (tmp_path / folder / "manifest.json").write_text(json.dumps({"splits": splits}))
+    with pytest.raises(ValueError, match="has no train split"):
+        nonbox_rooms.link_main_splits(tmp_path / "shards", tmp_path / "test_only")
