@@ -418,7 +418,7 @@ def plot(report: dict, path) -> None:
 def parse_light_nets(items: list[str]) -> dict[str, str]:
     from pipeline.bench.out_of_view_kinds import parse_exports
 
-    return parse_exports(items)
+    return parse_exports(items, "--light-net")
 
 
 def main(argv=None) -> None:

@@ -168,18 +168,18 @@ def run(
     return report
 
 
-def parse_exports(items: list[str]) -> dict[str, str]:
+def parse_exports(items: list[str], option: str = "--exports") -> dict[str, str]:
     """{name: path} of `NAME=PATH` items; a malformed item, a repeated name or a missing file is refused
-    naming it."""
+    naming it and the command's `option`."""
     out = {}
     for item in items:
         name, sep, path = item.partition("=")
         if not sep or not name or not path:
-            raise ValueError(f"--exports {item!r}: give NAME=PATH")
+            raise ValueError(f"{option} {item!r}: give NAME=PATH")
         if name in out:
-            raise ValueError(f"--exports: {name!r} given twice")
+            raise ValueError(f"{option}: {name!r} given twice")
         if not Path(path).is_file():
-            raise FileNotFoundError(f"--exports {name}: {path} not found")
+            raise FileNotFoundError(f"{option} {name}: {path} not found")
         out[name] = path
     return out
 

@@ -88,6 +88,8 @@ def test_nonbox_rooms_refuses_bad_options(micro_exports, tmp_path):
     ):
         with pytest.raises(error, match=match):
             nonbox_rooms.run(**{"material_path": material, **kwargs})
+    with pytest.raises(ValueError, match="--light-net 'a': give NAME=PATH"):
+        nonbox_rooms.parse_light_nets(["a"])
     (empty / "manifest.json").write_text(json.dumps({"splits": {"test": {}}}))
     with pytest.raises(ValueError, match="has no train split"):
         nonbox_rooms.run(light, data_dir=str(empty), material_path=material)
