@@ -102,3 +102,18 @@ def test_nonbox_rooms_refuses_bad_options(micro_exports, tmp_path):
         (tmp_path / folder / "manifest.json").write_text(json.dumps({"splits": splits}))
     with pytest.raises(ValueError, match="has no train split"):
         nonbox_rooms.link_main_splits(tmp_path / "shards", tmp_path / "test_only")
+
+
+def test_the_groups_draw_the_stage_rooms_or_the_ood_style_with_cases_and_one_view():
+    from pipeline.bench import nonbox_rooms
+    from pipeline.bench.common import compose
+
+    configs = nonbox_rooms.group_configs("micro", ("box", "ood"), 3)
+    stage = compose("synthesize", ["profile=micro"])
+    for cfg in configs.values():
+        assert cfg.scenes == 3 and cfg.views == 1 and cfg.cases.enabled
+        assert cfg.splits == {"train": 0.0, "val": 0.0, "test": 1.0}
+        assert (cfg.width, cfg.height, cfg.spp) == (stage.synth.width, stage.synth.height, stage.synth.spp)
+    assert configs["box"].room.palette == stage.synth.get("room", {}).get("palette", "standard")
+    assert configs["ood"].room.palette == stage.ood.synth.room.palette == "loft"
+    assert configs["ood"].room.lamps == tuple(stage.ood.synth.room.lamps)
