@@ -25,7 +25,9 @@ furniture). With `--material` the fit reads a trained MaterialNet's albedo, norm
 (times its export's `depth_scale`) instead, as a deployed fit would (`--predicted` takes only some of
 them, to find which map's error costs the fit). The ceiling's cells are on the room file's box, or with
 `--box estimated` on the box `ops.roombox` finds from the fit's own depth and normals, which the
-placements and the complete source below then use too: what a deployed fit could do.
+placements and the complete source below then use too: what a deployed fit could do. `--depth-noise E`
+multiplies the depth the fit reads (true or predicted) by 1 + E f, f a smooth standard-normal field per
+view (`noisy_depth`): how large a smooth depth error the fit tolerates.
 
 A least-squares fit is a point estimate, and the light's squared error punishes a lamp put in the wrong
 cell twice; the placement used is the fit's shrunk towards the training rooms' mean placement, the
@@ -257,6 +259,22 @@ def predicted_maps(item: dict, material_net, depth_scale: float, keys=PREDICTABL
     return out
 
 
+DEPTH_NOISE_KNOTS = (3, 4)  # rows x columns of the random field --depth-noise multiplies a view's depth by
+
+
+def noisy_depth(maps: dict, noise: float, seed: int) -> dict:
+    """`maps` with its depth times (1 + noise * f), f a smooth random field (`DEPTH_NOISE_KNOTS` standard
+    normal knots, bicubic over the image) drawn from `seed`: a depth whose error is smooth and of a known
+    size, to find how much error the fit tolerates. noise 0 leaves the maps as they are."""
+    if noise == 0:
+        return maps
+    g = torch.Generator().manual_seed(seed)
+    knots = torch.randn(1, 1, *DEPTH_NOISE_KNOTS, generator=g, dtype=torch.float64)
+    depth = maps["depth"]
+    field = torch.nn.functional.interpolate(knots, size=depth.shape[-2:], mode="bicubic", align_corners=True)[0]
+    return {**maps, "depth": (depth.double() * (1 + noise * field)).clamp(min=0).to(depth.dtype)}
+
+
 def training_mean_placement(data_dir: Path, source_root: Path, grid: int) -> torch.Tensor:
     """(1, grid * grid) mean lamp placement (`lamp_placement.distribution`) over the training views, from
     their room files and cameras alone."""
@@ -333,6 +351,7 @@ def fit_split(data, source_root: Path, grid: int, options: dict, material=None) 
     for i in tqdm(range(len(data)), desc="shading fit"):
         item = data[i]
         maps = item if material is None else predicted_maps(item, *material)
+        maps = noisy_depth(maps, options.get("depth_noise", 0.0), options["seed"] + 7919 * i)
         box = view_box(options["box"], source_root, maps)
         boxes.append(box)
         true_cells.append(ceiling_lamps(room_lamps(source_root, item["id"]), box, grid).reshape(-1, 3))
@@ -426,6 +445,7 @@ def run(
     box="true",
     learned_seeds=0,
     epochs=60,
+    depth_noise=0.0,
 ) -> dict:
     from torch.utils.data import Subset
 
@@ -460,7 +480,10 @@ def run(
 
         net, blob = load_material_export(material)
         maps = (net, float(blob["depth_scale"]), tuple(predicted))
+    if not 0 <= depth_noise < 1:
+        raise ValueError(f"--depth-noise {depth_noise}: give a relative error in [0, 1)")
     options = {"sub": sub, "pixels": pixels, "trim": trim, "seed": seed, "bounce": bool(bounce), "box": box}
+    options["depth_noise"] = float(depth_noise)
     # the fit's weight against the mean placement and its energy scale, both chosen on the validation views
     fits_val = fit_split(val, source_root, grid, options, maps)
     tried = {f"{w:.1f}": shrunk(fits_val["fitted"], prior, w, grid) for w in WEIGHTS}
@@ -507,11 +530,15 @@ def run(
         "seed": seed,
         "bounce": bool(bounce),
         "box": box,
+        "depth_noise": float(depth_noise),
         "bounce_texels": BOUNCE_TEXELS if bounce else None,
-        "gbuffers": "ground truth"
-        if material is None
-        else f"MaterialNet {material}"
-        + ("" if set(predicted) == set(PREDICTABLE) else f" ({', '.join(predicted)}; the rest true)"),
+        "gbuffers": (
+            "ground truth"
+            if material is None
+            else f"MaterialNet {material}"
+            + ("" if set(predicted) == set(PREDICTABLE) else f" ({', '.join(predicted)}; the rest true)")
+        )
+        + (f", depth x (1 + {depth_noise:g} smooth field)" if depth_noise else ""),
         "test_views": len(test),
         "val_views": len(val),
         "views_with_lamps": int(has_lamps.sum()),
@@ -604,6 +631,12 @@ def main(argv=None) -> None:
     )
     p.add_argument("--epochs", type=int, default=60, help="the placement networks' epochs")
     p.add_argument("--no-bounce", action="store_true", help="leave the walls' bounce light out of the fit")
+    p.add_argument(
+        "--depth-noise",
+        type=float,
+        default=0.0,
+        help="multiply the fit's depth by 1 + this times a smooth random field (the error the fit tolerates)",
+    )
     p.add_argument("--name", default="shading_placement")
     add_threads_option(p)
     a = p.parse_args(argv)
@@ -623,6 +656,7 @@ def main(argv=None) -> None:
         box=a.box,
         learned_seeds=a.learned_seeds,
         epochs=a.epochs,
+        depth_noise=a.depth_noise,
     )
     print(publish(a.name, report, plot))
 

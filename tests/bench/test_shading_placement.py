@@ -179,6 +179,29 @@ def test_runs_on_the_micro_data(micro_shards, micro_exports, tmp_path):
         sp.run(str(micro_shards), material=micro_exports / "material.pt", predicted=("colour",))
     with pytest.raises(ValueError, match="--pixels 4"):
         sp.run(str(micro_shards), grid=2, pixels=4)
+    with pytest.raises(ValueError, match="--depth-noise 1.5"):
+        sp.run(str(micro_shards), depth_noise=1.5)
+    noisy = sp.run(str(micro_shards), grid=2, sub=2, pixels=200, views=2, depth_noise=0.1)
+    assert noisy["depth_noise"] == 0.1 and noisy["gbuffers"] == "ground truth, depth x (1 + 0.1 smooth field)"
+
+
+def test_depth_noise_is_a_smooth_field_of_the_size_asked_for():
+    """`noisy_depth`: the depth times 1 + e f, f smooth (neighbouring pixels nearly equal) with a spread that
+    scales with e, the same for the same seed, another for another; pixels without depth stay without."""
+    import torch
+
+    depth = torch.full((1, 48, 64), 3.0)
+    depth[0, :4] = 0.0  # no depth there
+    maps = {"depth": depth, "im": torch.zeros(3, 48, 64)}
+    assert sp.noisy_depth(maps, 0.0, 1) is maps
+    a, b, c = (sp.noisy_depth(maps, e, s)["depth"] for e, s in ((0.1, 1), (0.1, 1), (0.1, 2)))
+    assert torch.equal(a, b) and not torch.equal(a, c)
+    assert torch.equal(a[0, :4], depth[0, :4]) and a.dtype == depth.dtype
+    ratio = a[0, 4:] / 3.0 - 1
+    assert 0.02 < float(ratio.std()) < 0.15  # of the order of e = 0.1 (bicubic knots narrow it)
+    assert float((ratio[:, 1:] - ratio[:, :-1]).abs().max()) < 0.02  # smooth: under 1/5 of e a pixel
+    doubled = sp.noisy_depth(maps, 0.2, 1)["depth"][0, 4:] / 3.0 - 1
+    assert torch.allclose(doubled, 2 * ratio, atol=1e-5)
 
 
 def test_fitted_lamps_fill_only_the_unseen_ceiling(micro_shards):
