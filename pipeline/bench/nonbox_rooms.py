@@ -37,11 +37,11 @@ from matplotlib.figure import Figure
 from tqdm import tqdm
 
 from pipeline.bench.common import add_threads_option, apply_threads, publish
+from pipeline.bench.learning_curve import CLASSES  # insertion classes, "all" last
+from pipeline.bench.out_of_view_kinds import VIEW_METRICS  # the per-view metrics paired between exports
 
 GROUPS = ("box", "l_shaped", "alcove", "sloped", "ood")
 SEED_OFFSET = 5000  # the stage's main rooms are drawn from its seed, the ood set from seed + 1000
-VIEW_METRICS = ("render_psnr", "surf_light_nmse", "free_light_nmse")
-CLASSES = ("mirror", "glossy", "diffuse", "all")
 
 
 def group_configs(profile: str, groups, rooms: int) -> dict:
@@ -148,29 +148,34 @@ def check_inputs(exports: dict[str, str], main_data_dir: Path, material_path: Pa
             raise FileNotFoundError(f"--light-net {name}: {path} not found")
     if not material_path.is_file():
         raise FileNotFoundError(f"--material {material_path}: not found")
-    manifest = main_data_dir / "manifest.json"
-    if not manifest.is_file():
+    if not (main_data_dir / "manifest.json").is_file():
         raise FileNotFoundError(f"--data-dir {main_data_dir}: no manifest.json (run `dvc repro preprocess`)")
-    splits = json.loads(manifest.read_text()).get("splits", {})
-    for split in ("train", "val"):
-        if split not in splits:
-            raise ValueError(f"{manifest}: has no {split} split to score the baselines with")
+    main_splits(main_data_dir)
     if keep is not None and any((keep / sub).exists() for sub in ("rooms", "shards")):
         raise FileExistsError(f"--keep {keep}: already holds rooms or shards; give a new or empty folder")
+
+
+MAIN_SPLITS = ("train", "val")  # what the bench takes from the main data: the baselines read the training split
+
+
+def main_splits(main_data_dir: Path) -> dict:
+    """{split: manifest entry} of `MAIN_SPLITS` in `main_data_dir`'s manifest; a missing one is refused."""
+    splits = json.loads((main_data_dir / "manifest.json").read_text()).get("splits", {})
+    for split in MAIN_SPLITS:
+        if split not in splits:
+            raise ValueError(f"{main_data_dir}/manifest.json: has no {split} split to score the baselines with")
+    return {split: splits[split] for split in MAIN_SPLITS}
 
 
 def link_main_splits(out: Path, main_data_dir: Path) -> None:
     """Link the training and validation shards of `main_data_dir` into the shard folder `out` and list
     them in its manifest: the scaled-constant baseline reads the training split."""
-    main = json.loads((main_data_dir / "manifest.json").read_text())
+    main = main_splits(main_data_dir)
     manifest = json.loads((out / "manifest.json").read_text())
-    for split in ("train", "val"):
-        if split not in main["splits"]:
-            raise ValueError(f"{main_data_dir}/manifest.json: has no {split} split to score the baselines with")
-    for split in ("train", "val"):
-        for shard in main["splits"][split]["shards"]:
+    for split, entry in main.items():
+        for shard in entry["shards"]:
             (out / shard["file"]).symlink_to((main_data_dir / shard["file"]).resolve())
-        manifest["splits"][split] = main["splits"][split]
+        manifest["splits"][split] = entry
     (out / "manifest.json").write_text(json.dumps(manifest, indent=1))
 
 
@@ -334,6 +339,7 @@ def _samples(shards: Path, per_group: int = 2) -> dict:
     """The first views' photos of each group for the figure: {group: [{id, png}]}, each photo tone-mapped
     to 8 bits and PNG-encoded (base64 text: a few kilobytes, where pixel lists would bloat the JSON)."""
     from pipeline.data.datasets import ShardDataset
+    from pipeline.data.formats.photo import tonemap
 
     data = ShardDataset(shards, "test", lighting=False)
     out: dict = {}
@@ -342,7 +348,7 @@ def _samples(shards: Path, per_group: int = 2) -> dict:
         picks = out.setdefault(group_of(item["id"]), [])
         if len(picks) < per_group:
             im = item["im"].clamp(min=0).permute(1, 2, 0).numpy()
-            picks.append({"id": item["id"], "png": png_text(np.clip((im / (1 + im)) ** (1 / 2.2), 0, 1))})
+            picks.append({"id": item["id"], "png": png_text(tonemap(im, exposure=1.0))})
     return out
 
 

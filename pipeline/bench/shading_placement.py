@@ -340,7 +340,7 @@ def view_box(kind: str, source_root: Path, maps: dict):
 
 
 def fit_split(data, source_root: Path, grid: int, options: dict, material=None) -> dict:
-    """Every view of `data` fitted (`fit_view`; `options`: sub, pixels, trim, seed, bounce, box): the true
+    """Every view of `data` fitted (`fit_view`; `options`: sub, pixels, trim, seed, bounce, box, depth_noise): the true
     and fitted cell radiance (N, grid * grid, 3) on each view's box, the boxes, what the camera saw of
     each (`visible_light.observed`, `TEXTURE_SIZE` texels a side) and the fit's statistics. `material`:
     (MaterialNet, depth scale, the maps it replaces) whose maps replace the truth in the fit."""
@@ -351,7 +351,7 @@ def fit_split(data, source_root: Path, grid: int, options: dict, material=None) 
     for i in tqdm(range(len(data)), desc="shading fit"):
         item = data[i]
         maps = item if material is None else predicted_maps(item, *material)
-        maps = noisy_depth(maps, options.get("depth_noise", 0.0), options["seed"] + 7919 * i)
+        maps = noisy_depth(maps, options["depth_noise"], options["seed"] + 7919 * i)
         box = view_box(options["box"], source_root, maps)
         boxes.append(box)
         true_cells.append(ceiling_lamps(room_lamps(source_root, item["id"]), box, grid).reshape(-1, 3))
@@ -482,8 +482,15 @@ def run(
         maps = (net, float(blob["depth_scale"]), tuple(predicted))
     if not 0 <= depth_noise < 1:
         raise ValueError(f"--depth-noise {depth_noise}: give a relative error in [0, 1)")
-    options = {"sub": sub, "pixels": pixels, "trim": trim, "seed": seed, "bounce": bool(bounce), "box": box}
-    options["depth_noise"] = float(depth_noise)
+    options = {
+        "sub": sub,
+        "pixels": pixels,
+        "trim": trim,
+        "seed": seed,
+        "bounce": bool(bounce),
+        "box": box,
+        "depth_noise": float(depth_noise),
+    }
     # the fit's weight against the mean placement and its energy scale, both chosen on the validation views
     fits_val = fit_split(val, source_root, grid, options, maps)
     tried = {f"{w:.1f}": shrunk(fits_val["fitted"], prior, w, grid) for w in WEIGHTS}
