@@ -137,14 +137,18 @@ def _remove_colliding(room: Room, footprints: list[Footprint], blocks: list[Foot
     """Drop furniture pieces (and the objects standing on them) overlapping `blocks`; lamps over a block
     are removed too, unless the room would be left without a light it can see (`_relight`)."""
     gone = [k for k, fp in enumerate(footprints) if any(fp.overlaps(b, gap=0.05) for b in blocks)]
+    kept = _drop_furniture(room, footprints, gone)
     removed_lamps = [s for s in room.shapes if s.role == "lamp" and _panel_overlaps(s, blocks)]
-    room.shapes = [
-        s
-        for s in room.shapes
-        if not (s.role in ("furniture", "object") and _stands_on(s, [footprints[k] for k in gone]))
-        and not any(s is lamp for lamp in removed_lamps)
-    ]
+    room.shapes = [s for s in room.shapes if not any(s is lamp for lamp in removed_lamps)]
     _relight(room, blocks, removed_lamps)
+    return kept
+
+
+def _drop_furniture(room: Room, footprints: list[Footprint], gone: list[int]) -> list[Footprint]:
+    """Remove the furniture pieces of the footprints indexed by `gone`, and the objects standing on them,
+    from the room; returns the footprints kept."""
+    areas = [footprints[k] for k in gone]
+    room.shapes = [s for s in room.shapes if not (s.role in ("furniture", "object") and _stands_on(s, areas))]
     return [fp for k, fp in enumerate(footprints) if k not in gone]
 
 
@@ -189,9 +193,7 @@ def _remove_under_slope(room: Room, footprints: list[Footprint]) -> list[Footpri
         top = max((m[1, 3] + abs(m[1, 1]) for m in parts), default=0.0)  # a part's centre y + its half height
         if top > min(ceiling_height(room, *c) for c in fp.corners()) - CLEARANCE_M:
             gone.append(k)
-    areas = [footprints[k] for k in gone]
-    room.shapes = [s for s in room.shapes if not (s.role in ("furniture", "object") and _stands_on(s, areas))]
-    return [fp for k, fp in enumerate(footprints) if k not in gone]
+    return _drop_furniture(room, footprints, gone)
 
 
 def slope_angle_deg(room: Room) -> float:
