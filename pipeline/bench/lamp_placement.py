@@ -17,7 +17,10 @@ local source, on ground-truth G-buffers (`bench.visible_light`), and each out-of
 through the ceiling takes its cell's lamp radiance under the placement (the view's true lamp total
 spread by the placement's distribution: energy is given, placement is scored) plus the photo's mean;
 every other direction the photo's mean. `true lamps` (exact panels) and `true placement` (the target
-cells) bound it from below. Writes reports/bench/lamp_placement.json (or `--name`) and a PNG.
+cells) bound it from below. With `--curve 0,N1,N2`, one network per seed is trained on the training split
+plus the first N of `bench.lamp_rooms`' extra rooms (photo-only rooms of the stage's generator and renderer,
+cached in `--extra-dir`), each paired with the same seed's network without them: does the photo place the
+lamps better with more rooms? Writes reports/bench/lamp_placement.json (or `--name`) and a PNG.
 """
 
 from __future__ import annotations
@@ -122,16 +125,28 @@ def mirrored_cells(cells: torch.Tensor, grid: int) -> torch.Tensor:
 
 
 def train(
-    x, target, x_val, target_val, grid: int, epochs: int, seed: int, extra=None, extra_val=None
+    x,
+    target,
+    x_val,
+    target_val,
+    grid: int,
+    epochs: int,
+    seed: int,
+    extra=None,
+    extra_val=None,
+    width: int = 32,
+    patience: int | None = None,
 ) -> tuple[PlacementNet, list[float]]:
     """PlacementNet fitted to distributions target (N, grid * grid), mirrored views included; the epoch
     whose validation cross-entropy is lowest is kept (252 rooms overfit long before the last epoch).
     `extra` (N, k * grid * grid), `extra_val`: k more ceiling maps per view as input beside the photo
-    (mirrored with it). Returns the net and the validation cross-entropy after each epoch."""
+    (mirrored with it). `width`: the net's channels. `patience`: stop after that many epochs without a
+    lower validation cross-entropy (None: every epoch). Returns the net and the validation cross-entropy
+    after each epoch run."""
     import copy
 
     torch.manual_seed(seed)
-    net = PlacementNet(grid, extra=0 if extra is None else extra.shape[1])
+    net = PlacementNet(grid, width, extra=0 if extra is None else extra.shape[1])
     opt = torch.optim.AdamW(net.parameters(), lr=1e-3, weight_decay=1e-4)
     xs, ts = torch.cat([x, x.flip(-1)]), torch.cat([target, mirrored_cells(target, grid)])
     es = None if extra is None else torch.cat([extra, mirrored_cells(extra, grid)]).float()
@@ -151,6 +166,8 @@ def train(
             curve.append(float(-(target_val * F.log_softmax(logits, -1)).sum(1).mean()))
         if curve[-1] < best:
             best, best_state = curve[-1], copy.deepcopy(net.state_dict())
+        elif patience is not None and len(curve) - 1 - int(np.argmin(curve)) >= patience:
+            break
     net.load_state_dict(best_state)
     return net.eval(), curve
 
@@ -223,17 +240,20 @@ def light_scores(
 def paired_differences(per_view: dict, reference: str) -> dict:
     """Per probe kind, each placement's pooled nMSE minus the reference's, paired by test view, with a
     95 % bootstrap interval over views: mean(error_a - error_ref) / mean(energy) (`ratio_bootstrap`)."""
+    names = [n for n in next(iter(per_view.values())) if n not in ("energy", reference)] if per_view else []
+    return paired_pairs(per_view, [(name, reference) for name in names])
+
+
+def paired_pairs(per_view: dict, pairs: list[tuple[str, str]]) -> dict:
+    """`paired_differences` for the given (placement, reference) pairs only."""
     from pipeline.metrics.bootstrap import ratio_bootstrap
 
     out = {}
     for kind, cols in per_view.items():
         if not cols["energy"]:
             continue
-        ref = np.asarray(cols[reference])
-        for name, errors in cols.items():
-            if name in ("energy", reference):
-                continue
-            b = ratio_bootstrap(np.asarray(errors) - ref, cols["energy"])
+        for name, reference in pairs:
+            b = ratio_bootstrap(np.asarray(cols[name]) - np.asarray(cols[reference]), cols["energy"])
             out[f"{kind}: {name} - {reference}"] = {"diff": b["ratio"], "lo": b["lo"], "hi": b["hi"], "views": b["n"]}
     return out
 
@@ -259,57 +279,114 @@ def placement_summary(report: dict, differences_title: str) -> dict:
     }
 
 
-def run(data_dir="outputs/preprocess", grid=8, height=60, epochs=60, seed=0, seeds=3) -> dict:
+def photo_placement_name(extra: int, seed: int) -> str:
+    """The row of a network trained on the training split plus `extra` rooms of `bench.lamp_rooms`."""
+    return f"from the photo, seed {seed}" if extra == 0 else f"from the photo, +{extra} rooms, seed {seed}"
+
+
+def run(
+    data_dir="outputs/preprocess",
+    grid=8,
+    height=60,
+    epochs=60,
+    seed=0,
+    seeds=3,
+    curve=(0,),
+    extra_dir="outputs/bench/lamp_rooms",
+    profile="tiny",
+    width=32,
+    patience=None,
+) -> dict:
+    """The bench (module docstring). `curve`: the numbers of extra rooms (`bench.lamp_rooms`, rendered
+    into `extra_dir` where missing, from the stage's `profile`) trained on beside the training split, one
+    network per number and seed; every row with extra rooms is also paired with the same seed's row
+    without them."""
     from pipeline.data.datasets import ShardDataset
 
     manifest = json.loads((Path(data_dir) / "manifest.json").read_text())
     source_root = Path(manifest["source_root"])
     if not source_root.is_dir():
         raise FileNotFoundError(f"{data_dir}/manifest.json: source_root {source_root} (the room files) is missing")
-    if grid < 1 or height < 8 or epochs < 1 or seeds < 1:
+    if grid < 1 or height < 8 or epochs < 1 or seeds < 1 or width < 2:
         raise ValueError(
-            f"--grid {grid}, --size {height}, --epochs {epochs}, --seeds {seeds}: need grid >= 1, size >= 8, "
-            "epochs >= 1, seeds >= 1"
+            f"--grid {grid}, --size {height}, --epochs {epochs}, --seeds {seeds}, --width {width}: need grid >= 1, "
+            "size >= 8, epochs >= 1, seeds >= 1, width >= 2"
         )
+    curve = sorted(set(int(n) for n in curve))
+    if not curve or curve[0] < 0:
+        raise ValueError(f"--curve {curve}: numbers of extra rooms, each >= 0")
     train_set, test_set = ShardDataset(data_dir, "train", lighting=False), ShardDataset(data_dir, "test", lighting=True)
     val_set = ShardDataset(data_dir, "val", lighting=False)
     x_train, cells_train = split_targets(train_set, source_root, grid, height)
     x_val, cells_val = split_targets(val_set, source_root, grid, height)
     x_test, cells_test = split_targets(test_set, source_root, grid, height)
     t_train, t_val, t_test = distribution(cells_train), distribution(cells_val), distribution(cells_test)
+    x_extra, t_extra = x_train[:0], t_train[:0]
+    if curve[-1] > 0:
+        from pipeline.bench.lamp_rooms import extra_rooms, room_targets
+
+        x_extra, cells_extra = room_targets(extra_rooms(extra_dir, curve[-1], seed, profile, height), grid)
+        t_extra = distribution(cells_extra)
+        if x_extra.shape[1:] != x_train.shape[1:]:
+            raise ValueError(
+                f"{extra_dir}: its photos are {tuple(x_extra.shape[1:])}, the training split's "
+                f"{tuple(x_train.shape[1:])}: rendered for another profile or size"
+            )
     uniform = torch.full_like(t_test, 1 / t_test.shape[1])
     mean_prior = t_train.mean(0, keepdim=True).expand_as(t_test)
     placements = {"uniform over the ceiling": uniform, "training rooms' mean": mean_prior}
-    val_curves, kept, fitted_scores = {}, {}, {}
-    for sd in range(seed, seed + seeds):
-        net, val_curves[sd] = train(x_train, t_train, x_val, t_val, grid, epochs, sd)
-        kept[sd] = int(np.argmin(val_curves[sd])) + 1
-        with torch.no_grad():
-            placements[f"from the photo, seed {sd}"] = predicted = F.softmax(net(x_test), -1)
-            fitted_scores[sd] = placement_scores(F.softmax(net(x_train), -1), t_train)
+    val_curves, kept, fitted_scores, rooms = {}, {}, {}, {}
+    for extra in curve:
+        for sd in range(seed, seed + seeds):
+            name = photo_placement_name(extra, sd)
+            x = torch.cat([x_train, x_extra[:extra]])
+            t = torch.cat([t_train, t_extra[:extra]])
+            net, val_curves[name] = train(x, t, x_val, t_val, grid, epochs, sd, width=width, patience=patience)
+            kept[name] = int(np.argmin(val_curves[name])) + 1
+            rooms[name] = len(x)
+            with torch.no_grad():
+                placements[name] = predicted = F.softmax(net(x_test), -1)
+                fitted_scores[name] = placement_scores(F.softmax(net(x_train), -1), t_train)
     report = {
         "data_dir": str(data_dir),
         "grid": grid,
         "input_height": height,
         "epochs": epochs,
+        "patience": patience,
+        "net_width": width,
         "seed": seed,
         "train_views": len(train_set),
         "val_views": len(val_set),
         "test_views": len(test_set),
         "seeds": list(range(seed, seed + seeds)),
-        "validation_cross_entropy": {str(k): v for k, v in val_curves.items()},
-        "kept_epoch": {str(k): v for k, v in kept.items()},
+        "curve": curve,
+        "extra_rooms": {"dir": str(extra_dir), "rooms": len(x_extra), "profile": profile} if curve[-1] else None,
+        "training_rooms": rooms,
+        "validation_cross_entropy": val_curves,
+        "kept_epoch": kept,
         "validation_cross_entropy_of_the_training_mean": placement_scores(
             t_train.mean(0, keepdim=True).expand_as(t_val), t_val
         )["cross_entropy"],
         "placement": {name: placement_scores(p, t_test) for name, p in placements.items()},
-        "placement_on_training_views": {str(k): v for k, v in fitted_scores.items()},
+        "placement_on_training_views": fitted_scores,
     }
     report["light"], per_view = light_scores(test_set, source_root, grid, placements)
     report["differences"] = paired_differences(per_view, "training rooms' mean")
     report["summary"] = placement_summary(
         report, "nMSE against the training rooms' mean placement, paired by test view (95 % bootstrap)"
     )
+    more = [
+        (photo_placement_name(extra, sd), photo_placement_name(0, sd))
+        for extra in curve
+        if extra
+        for sd in report["seeds"]
+    ]
+    if more and curve[0] == 0:
+        report["differences_with_more_rooms"] = paired_pairs(per_view, more)
+        report["summary"]["nMSE with the extra rooms against without, same seed, paired by test view"] = [
+            {"difference": name, "nMSE": d["diff"], "lo": d["lo"], "hi": d["hi"]}
+            for name, d in report["differences_with_more_rooms"].items()
+        ]
     report["examples"] = {
         "target": t_test[:4].view(-1, grid, grid).tolist(),
         "from the photo": predicted[:4].view(-1, grid, grid).tolist(),
@@ -330,19 +407,59 @@ def light_bars(ax, light: dict, title: str) -> None:
     ax.set_title(title, fontsize=9)
 
 
+def curve_rows(report: dict) -> list[dict]:
+    """Per network of the learning curve: its training rooms, seed, share on lamp cells and surface nMSE."""
+    rows = []
+    for extra in report.get("curve", [0]):
+        for sd in report["seeds"]:
+            name = photo_placement_name(extra, sd)
+            if name in report["light"]:
+                rows.append(
+                    {
+                        "rooms": report.get("training_rooms", {}).get(name, report["train_views"]),
+                        "seed": sd,
+                        "share": report["placement"][name]["share_on_lamp_cells"],
+                        "surf": report["light"][name].get("surf", {}).get("nmse", math.nan),
+                    }
+                )
+    return rows
+
+
 def plot(report: dict, path) -> None:
-    fig = Figure(figsize=(11, 5.6))
+    rows = curve_rows(report)
+    several = len({r["rooms"] for r in rows}) > 1
+    fig = Figure(figsize=(11, 8.4 if several else 5.6))
+    top = 3 if several else 2
     light_bars(
-        fig.add_subplot(2, 1, 1),
+        fig.add_subplot(top, 1, 1),
         report["light"],
         f"light on {report['test_views']} test views with the lamps' energy placed on the ceiling "
         f"({report['grid']} x {report['grid']} cells)",
     )
+    if several:
+        for j, (key, label) in enumerate((("share", "share on lamp cells"), ("surf", "surface nMSE"))):
+            ax = fig.add_subplot(top, 2, 3 + j)
+            ax.plot([r["rooms"] for r in rows], [r[key] for r in rows], "o", alpha=0.6, label="one seed")
+            sizes = sorted({r["rooms"] for r in rows})
+            ax.plot(sizes, [np.mean([r[key] for r in rows if r["rooms"] == n]) for n in sizes], "-", label="mean")
+            prior = "training rooms' mean"
+            if key == "share":
+                ref = report["placement"][prior]["share_on_lamp_cells"]
+            else:
+                ref = report["light"][prior]["surf"]["nmse"]
+            ax.axhline(ref, color="grey", ls="--", label=prior)
+            true = report["light"]["true placement"]["surf"]["nmse"] if key == "surf" else None
+            if true is not None:
+                ax.axhline(true, color="green", ls=":", label="true placement")
+            ax.set_xscale("log")
+            ax.set_xlabel("training rooms")
+            ax.set_title(f"{label} (test views) against the rooms trained on", fontsize=9)
+            ax.legend(fontsize=7)
     ex = report["examples"]
     last = report["seeds"][-1]
     for i in range(min(4, len(ex["target"]))):
         for j, key in enumerate(("target", "from the photo")):
-            a = fig.add_subplot(2, 8, 9 + 2 * i + j)
+            a = fig.add_subplot(top, 8, 8 * (top - 1) + 1 + 2 * i + j)
             a.imshow(np.array(ex[key][i]), cmap="magma")
             a.set_xticks([])
             a.set_yticks([])
@@ -357,13 +474,31 @@ def main(argv=None) -> None:
     p.add_argument("--grid", type=int, default=8)
     p.add_argument("--size", type=int, default=60, help="input photo height in pixels")
     p.add_argument("--epochs", type=int, default=60)
+    p.add_argument(
+        "--patience", type=int, default=None, help="stop after this many epochs without a better validation score"
+    )
+    p.add_argument("--width", type=int, default=32, help="the placement network's channels")
     p.add_argument("--seed", type=int, default=0, help="the first seed")
     p.add_argument("--seeds", type=int, default=3, help="networks trained, from --seed on")
+    p.add_argument(
+        "--curve",
+        default="0",
+        help="comma-separated numbers of extra rooms (bench.lamp_rooms) trained on beside the training split",
+    )
+    p.add_argument("--extra-dir", default="outputs/bench/lamp_rooms", help="cache of the extra rooms")
+    p.add_argument("--profile", default="tiny", help="the synthesize profile the extra rooms are drawn with")
     p.add_argument("--name", default="lamp_placement")
     add_threads_option(p)
     a = p.parse_args(argv)
+    try:
+        curve = [int(n) for n in a.curve.split(",")]
+    except ValueError:
+        p.error(f"--curve {a.curve!r}: comma-separated whole numbers")
     apply_threads(a.threads)
-    print(publish(a.name, run(a.data_dir, a.grid, a.size, a.epochs, a.seed, a.seeds), plot))
+    report = run(
+        a.data_dir, a.grid, a.size, a.epochs, a.seed, a.seeds, curve, a.extra_dir, a.profile, a.width, a.patience
+    )
+    print(publish(a.name, report, plot))
 
 
 if __name__ == "__main__":

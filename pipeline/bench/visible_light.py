@@ -83,15 +83,19 @@ def texel_means(index: torch.Tensor, radiance: torch.Tensor, cells: int) -> torc
 
 
 def room_lamps(source_root: Path, view_id: str):
-    """The view's ceiling panels in view space: centre (L, 3), half-axes u, v (L, 3) and emitted radiance
-    (L, 3), float64, from the room file's `lamp` shapes (unit rectangles scaled by `to_world`, emitting
-    on the side their normal faces) and the camera's `world_from_view`."""
+    """The view's ceiling panels in view space (`lamps_in_view`) from its room file and camera."""
     scene, view = view_id.split("/")
     room = json.loads((source_root / scene / "scene.json").read_text())
-    world_from_view = torch.tensor(
-        json.loads((source_root / scene / "cameras.json").read_text())[view]["world_from_view"], dtype=torch.float64
-    )
-    view_from_world = torch.linalg.inv(world_from_view)
+    world_from_view = json.loads((source_root / scene / "cameras.json").read_text())[view]["world_from_view"]
+    return lamps_in_view(room, world_from_view)
+
+
+def lamps_in_view(room: dict, world_from_view):
+    """A room's ceiling panels in the view space of a camera with 4x4 `world_from_view`: centre (L, 3),
+    half-axes u, v (L, 3), normal (L, 3) and emitted radiance (L, 3), float64, from the room's `lamp`
+    shapes (unit rectangles scaled by `to_world`, emitting on the side their normal faces); None without
+    lamps."""
+    view_from_world = torch.linalg.inv(torch.as_tensor(world_from_view, dtype=torch.float64))
     lamps = [shape for shape in room["shapes"] if shape["role"] == "lamp"]
     if not lamps:
         return None

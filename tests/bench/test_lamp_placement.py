@@ -30,7 +30,8 @@ def test_a_lamp_covers_the_cells_it_lies_over():
 
 def test_runs_on_the_micro_data(micro_shards, tmp_path):
     report = lp.run(str(micro_shards), grid=2, height=8, epochs=2, seeds=1)
-    assert report["kept_epoch"]["0"] in (1, 2) and len(report["validation_cross_entropy"]["0"]) == 2
+    name = "from the photo, seed 0"
+    assert report["kept_epoch"][name] in (1, 2) and len(report["validation_cross_entropy"][name]) == 2
     rows = report["summary"]["each placement"]
     names = [row["placement"] for row in rows]
     assert names == [
@@ -64,3 +65,20 @@ def test_extra_maps_are_mirrored_with_the_photo_and_reach_the_head():
     x = torch.rand(2, 3, 8, 10)
     assert net(x, cells).shape == (2, 9)
     assert not torch.allclose(net(x, cells), net(x, torch.zeros_like(cells)))  # the extra input is used
+
+
+def test_training_stops_after_its_patience():
+    """With `patience` p the run ends p epochs after its best validation epoch (or at the last epoch),
+    and the kept net is that best epoch's."""
+    g = torch.Generator().manual_seed(0)
+    x, x_val = torch.rand(8, 3, 8, 10, generator=g), torch.rand(8, 3, 8, 10, generator=g)
+    t = torch.softmax(torch.randn(8, 4, generator=g) * 3, -1)
+    t_val = torch.softmax(torch.randn(8, 4, generator=g) * 3, -1)  # unrelated: validation soon rises
+    net, curve = lp.train(x, t, x_val, t_val, 2, 40, 0, width=4, patience=2)
+    best = min(range(len(curve)), key=curve.__getitem__)
+    assert len(curve) == 40 or len(curve) == best + 3
+    with torch.no_grad():
+        kept = -(t_val * torch.log_softmax(net(x_val), -1)).sum(1).mean()
+    assert float(kept) == pytest.approx(curve[best], rel=1e-5)
+    _, full = lp.train(x, t, x_val, t_val, 2, 10, 0, width=4)
+    assert len(full) == 10
