@@ -33,6 +33,7 @@ from pathlib import Path
 import numpy as np
 import torch
 from matplotlib.figure import Figure
+from matplotlib.ticker import NullFormatter
 from torch import nn
 from torch.nn import functional as F
 from tqdm import tqdm
@@ -72,26 +73,49 @@ def luminance(rgb: torch.Tensor) -> torch.Tensor:
     return rgb @ torch.tensor([0.2126, 0.7152, 0.0722], dtype=rgb.dtype)
 
 
+NETS = ("small", "deep")
+TEMPERATURES = torch.exp(torch.linspace(math.log(0.25), math.log(16.0), 49))  # the calibration's grid
+
+
 class PlacementNet(nn.Module):
     """Photo (B, 3, H, W), log radiance over its mean -> logits (B, grid * grid) over the ceiling's cells;
-    with `extra` > 0, that many more features per view (B, extra) join the pooled ones before the head."""
+    with `extra` > 0, that many more features per view (B, extra) join the pooled ones before the head.
+    `kind`: `small`, three strided convolutions of `width // 2`, `width`, `width` channels; `deep`, six
+    batch-normalised ones of `width // 2` (twice), `width` (twice) and `2 width` (twice) channels, four
+    of them strided. Either is pooled to 4 x 5 (it keeps where in the photo) before a linear head. The
+    logits are divided by the buffer `temperature` (1 until `calibrate` sets it)."""
 
-    def __init__(self, grid: int, width: int = 32, extra: int = 0):
+    def __init__(self, grid: int, width: int = 32, extra: int = 0, kind: str = "small"):
         super().__init__()
-        self.features = nn.Sequential(
-            nn.Conv2d(3, width // 2, 3, 2, 1),
-            nn.ReLU(),
-            nn.Conv2d(width // 2, width, 3, 2, 1),
-            nn.ReLU(),
-            nn.Conv2d(width, width, 3, 2, 1),
-            nn.ReLU(),
-            nn.AdaptiveAvgPool2d((4, 5)),  # keeps where in the photo
-        )
-        self.head = nn.Linear(width * 20 + extra, grid * grid)
+        if kind == "small":
+            layers = [(width // 2, 2), (width, 2), (width, 2)]
+        elif kind == "deep":
+            layers = [(width // 2, 1), (width // 2, 2), (width, 2), (width, 2), (2 * width, 2), (2 * width, 1)]
+        else:
+            raise ValueError(f"--net {kind!r}: one of {', '.join(NETS)}")
+        convs, channels = [], 3
+        for out, stride in layers:
+            convs.append(nn.Conv2d(channels, out, 3, stride, 1))
+            if kind == "deep":
+                convs.append(nn.BatchNorm2d(out))
+            convs.append(nn.ReLU())
+            channels = out
+        self.features = nn.Sequential(*convs, nn.AdaptiveAvgPool2d((4, 5)))
+        self.head = nn.Linear(channels * 20 + extra, grid * grid)
+        self.register_buffer("temperature", torch.ones(()))
 
     def forward(self, x: torch.Tensor, extra: torch.Tensor | None = None) -> torch.Tensor:
         pooled = self.features(x).flatten(1)
-        return self.head(pooled if extra is None else torch.cat([pooled, extra], 1))
+        return self.head(pooled if extra is None else torch.cat([pooled, extra], 1)) / self.temperature
+
+
+def calibrated_cross_entropy(logits: torch.Tensor, target: torch.Tensor) -> tuple[float, float]:
+    """The lowest mean cross-entropy of softmax(logits / T) to the distributions target over the
+    temperatures T of `TEMPERATURES`, and that T: a net that ranks the cells well but is overconfident
+    is not charged for the confidence, which one scalar on validation views corrects."""
+    scores = torch.stack([-(target * F.log_softmax(logits / t, -1)).sum(1).mean() for t in TEMPERATURES])
+    best = int(torch.argmin(scores))
+    return float(scores[best]), float(TEMPERATURES[best])
 
 
 def photo_input(im: torch.Tensor, height: int) -> torch.Tensor:
@@ -136,17 +160,20 @@ def train(
     extra_val=None,
     width: int = 32,
     patience: int | None = None,
+    kind: str = "small",
+    calibrate: bool = False,
 ) -> tuple[PlacementNet, list[float]]:
     """PlacementNet fitted to distributions target (N, grid * grid), mirrored views included; the epoch
     whose validation cross-entropy is lowest is kept (252 rooms overfit long before the last epoch).
     `extra` (N, k * grid * grid), `extra_val`: k more ceiling maps per view as input beside the photo
-    (mirrored with it). `width`: the net's channels. `patience`: stop after that many epochs without a
-    lower validation cross-entropy (None: every epoch). Returns the net and the validation cross-entropy
-    after each epoch run."""
+    (mirrored with it). `width`, `kind`: the net's (`PlacementNet`). `patience`: stop after that many
+    epochs without a lower validation cross-entropy (None: every epoch). `calibrate`: each epoch is judged
+    at its best temperature (`calibrated_cross_entropy`), which the kept net carries. Returns the net and
+    the validation cross-entropy after each epoch run."""
     import copy
 
     torch.manual_seed(seed)
-    net = PlacementNet(grid, width, extra=0 if extra is None else extra.shape[1])
+    net = PlacementNet(grid, width, extra=0 if extra is None else extra.shape[1], kind=kind)
     opt = torch.optim.AdamW(net.parameters(), lr=1e-3, weight_decay=1e-4)
     xs, ts = torch.cat([x, x.flip(-1)]), torch.cat([target, mirrored_cells(target, grid)])
     es = None if extra is None else torch.cat([extra, mirrored_cells(extra, grid)]).float()
@@ -163,9 +190,14 @@ def train(
         net.eval()
         with torch.no_grad():
             logits = net(x_val, None if extra_val is None else extra_val.float())
-            curve.append(float(-(target_val * F.log_softmax(logits, -1)).sum(1).mean()))
+            if calibrate:
+                score, temperature = calibrated_cross_entropy(logits, target_val)
+            else:
+                score, temperature = float(-(target_val * F.log_softmax(logits, -1)).sum(1).mean()), 1.0
+        curve.append(score)
         if curve[-1] < best:
             best, best_state = curve[-1], copy.deepcopy(net.state_dict())
+            best_state["temperature"] = torch.tensor(temperature)
         elif patience is not None and len(curve) - 1 - int(np.argmin(curve)) >= patience:
             break
     net.load_state_dict(best_state)
@@ -296,6 +328,8 @@ def run(
     profile="tiny",
     width=32,
     patience=None,
+    net_kind="small",
+    calibrate=False,
 ) -> dict:
     """The bench (module docstring). `curve`: the numbers of extra rooms (`bench.lamp_rooms`, rendered
     into `extra_dir` where missing, from the stage's `profile`) trained on beside the training split, one
@@ -307,6 +341,8 @@ def run(
     source_root = Path(manifest["source_root"])
     if not source_root.is_dir():
         raise FileNotFoundError(f"{data_dir}/manifest.json: source_root {source_root} (the room files) is missing")
+    if net_kind not in NETS:
+        raise ValueError(f"--net {net_kind!r}: one of {', '.join(NETS)}")
     if grid < 1 or height < 8 or epochs < 1 or seeds < 1 or width < 2:
         raise ValueError(
             f"--grid {grid}, --size {height}, --epochs {epochs}, --seeds {seeds}, --width {width}: need grid >= 1, "
@@ -335,14 +371,17 @@ def run(
     uniform = torch.full_like(t_test, 1 / t_test.shape[1])
     mean_prior = t_train.mean(0, keepdim=True).expand_as(t_test)
     placements = {"uniform over the ceiling": uniform, "training rooms' mean": mean_prior}
-    val_curves, kept, fitted_scores, rooms = {}, {}, {}, {}
+    val_curves, kept, fitted_scores, rooms, temperatures = {}, {}, {}, {}, {}
     for extra in curve:
         for sd in range(seed, seed + seeds):
             name = photo_placement_name(extra, sd)
             x = torch.cat([x_train, x_extra[:extra]])
             t = torch.cat([t_train, t_extra[:extra]])
-            net, val_curves[name] = train(x, t, x_val, t_val, grid, epochs, sd, width=width, patience=patience)
+            net, val_curves[name] = train(
+                x, t, x_val, t_val, grid, epochs, sd, width=width, patience=patience, kind=net_kind, calibrate=calibrate
+            )
             kept[name] = int(np.argmin(val_curves[name])) + 1
+            temperatures[name] = float(net.temperature)
             rooms[name] = len(x)
             with torch.no_grad():
                 placements[name] = predicted = F.softmax(net(x_test), -1)
@@ -353,7 +392,10 @@ def run(
         "input_height": height,
         "epochs": epochs,
         "patience": patience,
+        "net": net_kind,
         "net_width": width,
+        "calibrated": calibrate,
+        "temperature": temperatures,
         "seed": seed,
         "train_views": len(train_set),
         "val_views": len(val_set),
@@ -452,18 +494,22 @@ def plot(report: dict, path) -> None:
             if true is not None:
                 ax.axhline(true, color="green", ls=":", label="true placement")
             ax.set_xscale("log")
+            ax.set_xticks(sizes, [str(n) for n in sizes], fontsize=8)
+            ax.xaxis.set_minor_formatter(NullFormatter())
             ax.set_xlabel("training rooms")
-            ax.set_title(f"{label} (test views) against the rooms trained on", fontsize=9)
+            ax.set_title(f"{label}, test views", fontsize=9)
             ax.legend(fontsize=7)
     ex = report["examples"]
     last = report["seeds"][-1]
+    if several:  # the examples are the last network's: the most rooms, the last seed
+        last = f"{last}, {max(r['rooms'] for r in rows)} rooms"
     for i in range(min(4, len(ex["target"]))):
         for j, key in enumerate(("target", "from the photo")):
             a = fig.add_subplot(top, 8, 8 * (top - 1) + 1 + 2 * i + j)
             a.imshow(np.array(ex[key][i]), cmap="magma")
             a.set_xticks([])
             a.set_yticks([])
-            a.set_title(f"view {i}: " + ("true" if j == 0 else f"seed {last}"), fontsize=7)
+            a.set_title(f"view {i}:\n" + ("true" if j == 0 else f"seed {last}"), fontsize=7)
     fig.tight_layout()
     fig.savefig(path, dpi=110)
 
@@ -478,6 +524,10 @@ def main(argv=None) -> None:
         "--patience", type=int, default=None, help="stop after this many epochs without a better validation score"
     )
     p.add_argument("--width", type=int, default=32, help="the placement network's channels")
+    p.add_argument("--net", default="small", choices=NETS, help="the placement network (PlacementNet)")
+    p.add_argument(
+        "--calibrate", action="store_true", help="judge each epoch at its best temperature on validation views"
+    )
     p.add_argument("--seed", type=int, default=0, help="the first seed")
     p.add_argument("--seeds", type=int, default=3, help="networks trained, from --seed on")
     p.add_argument(
@@ -496,7 +546,19 @@ def main(argv=None) -> None:
         p.error(f"--curve {a.curve!r}: comma-separated whole numbers")
     apply_threads(a.threads)
     report = run(
-        a.data_dir, a.grid, a.size, a.epochs, a.seed, a.seeds, curve, a.extra_dir, a.profile, a.width, a.patience
+        a.data_dir,
+        a.grid,
+        a.size,
+        a.epochs,
+        a.seed,
+        a.seeds,
+        curve,
+        a.extra_dir,
+        a.profile,
+        a.width,
+        a.patience,
+        a.net,
+        a.calibrate,
     )
     print(publish(a.name, report, plot))
 

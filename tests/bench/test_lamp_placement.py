@@ -82,3 +82,33 @@ def test_training_stops_after_its_patience():
     assert float(kept) == pytest.approx(curve[best], rel=1e-5)
     _, full = lp.train(x, t, x_val, t_val, 2, 10, 0, width=4)
     assert len(full) == 10
+
+
+def test_calibration_undoes_overconfidence():
+    """Logits that rank the right cell first but ten times too sharply are judged at a temperature near 10,
+    never worse than at 1; a calibrated net's logits are divided by its temperature."""
+    g = torch.Generator().manual_seed(1)
+    true_logits = torch.randn(200, 6, generator=g)
+    target = torch.softmax(true_logits, -1)
+    score, temperature = lp.calibrated_cross_entropy(true_logits * 10, target)
+    at_one = float(-(target * torch.log_softmax(true_logits * 10, -1)).sum(1).mean())
+    assert score < at_one and 7 < temperature < 14
+    exact = float(-(target * torch.log_softmax(true_logits, -1)).sum(1).mean())
+    assert score == pytest.approx(exact, rel=0.01)
+    net = lp.PlacementNet(2, width=8, kind="deep").eval()
+    x = torch.rand(3, 3, 16, 20)
+    raw = net(x)
+    net.temperature.fill_(4.0)
+    assert raw.shape == (3, 4) and torch.allclose(net(x), raw / 4)
+    with pytest.raises(ValueError, match="--net 'wide'"):
+        lp.PlacementNet(2, kind="wide")
+
+
+def test_the_deep_net_calibrated_on_the_micro_data(micro_shards):
+    report = lp.run(str(micro_shards), grid=2, height=16, epochs=2, seeds=1, width=8, net_kind="deep", calibrate=True)
+    name = "from the photo, seed 0"
+    assert report["net"] == "deep" and report["calibrated"] is True
+    assert float(lp.TEMPERATURES[0]) <= report["temperature"][name] <= float(lp.TEMPERATURES[-1])
+    assert math.isfinite(report["light"][name]["surf"]["nmse"])
+    with pytest.raises(ValueError, match="--net"):
+        lp.run(str(micro_shards), net_kind="wide")

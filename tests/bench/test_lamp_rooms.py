@@ -47,7 +47,7 @@ def test_the_cache_resumes_and_refuses_other_settings(tmp_path, monkeypatch):
     monkeypatch.setattr(lr, "ProcessPoolExecutor", no_rendering)
     again = lr.extra_rooms(cache, 4, seed=0, profile="micro", height=8, workers=1)  # chunks hold 4 rooms
     assert [r["index"] for r in again] == [0, 1, 2, 3]
-    assert all(torch.equal(a["x"], b["x"]) for a, b in zip(rooms, again, strict=True))
+    assert all(torch.equal(a["x"], b["x"]) for a, b in zip(rooms, again[:3], strict=True))
     with pytest.raises(ValueError, match="height=8.*16"):
         lr.extra_rooms(cache, 2, seed=0, profile="micro", height=16)
     with pytest.raises(ValueError, match="seed"):
