@@ -638,7 +638,7 @@ BENCH_HEADLINES = {
 
 
 # benches whose figure the page shows (the others' PNGs lie beside their JSONs)
-BENCH_FIGURES = ("real_photo", "insertion_figure", "pipeline_time", "nonbox_rooms")
+BENCH_FIGURES = ("real_photo", "insertion_figure", "pipeline_time", "nonbox_rooms", "lamp_placement_rooms_deep")
 
 
 def section_benches(reports: Path, profile: str) -> list[str]:
