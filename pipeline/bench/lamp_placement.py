@@ -40,6 +40,7 @@ from tqdm import tqdm
 
 from pipeline.bench.blend_floor import KINDS, blended, ground_truth_gbuffers, kind_scores, score_directions, view_rays
 from pipeline.bench.common import add_threads_option, apply_threads, publish
+from pipeline.bench.lamp_rooms import photo_input
 from pipeline.bench.light_energy import EnergyTally
 from pipeline.bench.roombox_floor import true_box
 from pipeline.bench.visible_light import THRESHOLD, K, box_texels, lamp_radiance, room_lamps
@@ -118,13 +119,6 @@ def calibrated_cross_entropy(logits: torch.Tensor, target: torch.Tensor) -> tupl
     return float(scores[best]), float(TEMPERATURES[best])
 
 
-def photo_input(im: torch.Tensor, height: int) -> torch.Tensor:
-    """(3, H, W) HDR -> (3, height, height * W / H) log radiance over the photo's mean."""
-    x = torch.log1p(im.clamp(min=0) / im.clamp(min=0).mean().clamp(min=1e-8))
-    width = round(height * im.shape[-1] / im.shape[-2])
-    return F.interpolate(x[None], size=(height, width), mode="area")[0]
-
-
 def split_targets(data, source_root: Path, grid: int, height: int):
     """Inputs (N, 3, h, w) and target cell radiance (N, grid, grid, 3) of every view of a dataset."""
     xs, ys = [], []
@@ -133,6 +127,20 @@ def split_targets(data, source_root: Path, grid: int, height: int):
         box = true_box(source_root, item["id"])
         ys.append(ceiling_lamps(room_lamps(source_root, item["id"]), box, grid))
         xs.append(photo_input(item["im"], height))
+    return torch.stack(xs), torch.stack(ys)
+
+
+def room_targets(records: list[dict], grid: int) -> tuple[torch.Tensor, torch.Tensor]:
+    """Inputs (N, 3, h, w) float32 and the ceiling lamps' radiance per cell (N, grid, grid, 3) of the
+    records of `bench.lamp_rooms`, as `split_targets` reads them for the stage's views."""
+    from pipeline.bench.visible_light import lamps_in_view
+    from pipeline.ops.roombox import box_from_room
+
+    xs, ys = [], []
+    for r in records:
+        box = box_from_room(r["room"]["size"], r["world_from_view"])
+        ys.append(ceiling_lamps(lamps_in_view(r["room"], r["world_from_view"]), box, grid))
+        xs.append(r["x"].float())
     return torch.stack(xs), torch.stack(ys)
 
 
@@ -359,7 +367,7 @@ def run(
     t_train, t_val, t_test = distribution(cells_train), distribution(cells_val), distribution(cells_test)
     x_extra, t_extra = x_train[:0], t_train[:0]
     if curve[-1] > 0:
-        from pipeline.bench.lamp_rooms import extra_rooms, room_targets
+        from pipeline.bench.lamp_rooms import extra_rooms
 
         x_extra, cells_extra = room_targets(extra_rooms(extra_dir, curve[-1], seed, profile, height), grid)
         t_extra = distribution(cells_extra)

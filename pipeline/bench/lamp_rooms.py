@@ -23,10 +23,19 @@ from pathlib import Path
 
 import numpy as np
 import torch
+from torch.nn import functional as F
 from tqdm import tqdm
 
 SEED_OFFSET = 20000
 CHUNK = 50  # rooms per worker job and per cache file
+
+
+def photo_input(im: torch.Tensor, height: int) -> torch.Tensor:
+    """(3, H, W) HDR -> (3, height, height * W / H) log radiance over the photo's mean: what a placement
+    network reads (`bench.lamp_placement`)."""
+    x = torch.log1p(im.clamp(min=0) / im.clamp(min=0).mean().clamp(min=1e-8))
+    width = round(height * im.shape[-1] / im.shape[-2])
+    return F.interpolate(x[None], size=(height, width), mode="area")[0]
 
 
 def synth_config(profile: str):
@@ -43,7 +52,6 @@ def synth_config(profile: str):
 def render_photos(indices: list[int], seed: int, cfg, variant: str, threads: int, height: int) -> list[dict]:
     """Rooms `indices` of `seed` (a worker job): per room its index, the photo as `lamp_placement`'s input
     (3, height, width) float16, the room's size and lamp shapes, and the camera's 4x4 world_from_view."""
-    from pipeline.bench.lamp_placement import photo_input
     from pipeline.data.synth import mitsuba_backend as mb
     from pipeline.data.synth.denoise import denoise_hdr
     from pipeline.data.synth.generate import scene_seed
@@ -140,18 +148,3 @@ def extra_rooms(
         except Exception as exc:  # a truncated file from an interrupted run
             raise ValueError(f"{path}: unreadable ({exc}); delete it and run again") from exc
     return out[:rooms]
-
-
-def room_targets(records: list[dict], grid: int) -> tuple[torch.Tensor, torch.Tensor]:
-    """Inputs (N, 3, h, w) float32 and the ceiling lamps' radiance per cell (N, grid, grid, 3) of the
-    records, as `lamp_placement.split_targets` reads them for the stage's views."""
-    from pipeline.bench.lamp_placement import ceiling_lamps
-    from pipeline.bench.visible_light import lamps_in_view
-    from pipeline.ops.roombox import box_from_room
-
-    xs, ys = [], []
-    for r in records:
-        box = box_from_room(r["room"]["size"], r["world_from_view"])
-        ys.append(ceiling_lamps(lamps_in_view(r["room"], r["world_from_view"]), box, grid))
-        xs.append(r["x"].float())
-    return torch.stack(xs), torch.stack(ys)

@@ -27,7 +27,7 @@ def test_a_room_is_rendered_as_the_stage_renders_it(micro_root):
     expected = lp.photo_input(photo, 16)
     assert record["x"].dtype == torch.float16 and record["x"].shape == expected.shape
     assert float((record["x"].float() - expected).abs().max()) < 4e-3  # float16 rounding of values up to ~3
-    x, cells = lr.room_targets([record], 4)
+    x, cells = lp.room_targets([record], 4)
     stage_cells = lp.ceiling_lamps(room_lamps(micro_root, "scene_0000/000"), true_box(micro_root, "scene_0000/000"), 4)
     assert torch.allclose(cells[0], stage_cells) and float(stage_cells.sum()) > 0
     assert torch.equal(x[0], record["x"].float())
