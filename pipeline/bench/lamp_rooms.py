@@ -9,8 +9,9 @@ own kind. Rooms come from `seed + SEED_OFFSET`, apart from the stage's rooms (`s
 (`seed + 1000`) and `bench.nonbox_rooms`' (`seed + 5000`).
 
 Results go into a cache folder, one file per chunk of rooms (`chunk_<first index>.pt`) beside a
-`meta.json` that names what they were made from (seed, profile, photo height, the synth config's hash):
-a later call with the same settings reuses them and renders only what is missing; other settings refuse.
+`meta.json` that names what they were made from (seed, profile, photo height, chunk size, the synth
+config's hash): a later call with the same settings reuses them and renders only what is missing; other
+settings refuse.
 """
 
 from __future__ import annotations
@@ -100,7 +101,7 @@ def extra_rooms(
     """The first `rooms` extra rooms of `seed` (`render_photos`' records, by index), rendered into
     `cache` where missing. Refuses a cache made with other settings, naming the differing key."""
     if rooms < 0:
-        raise ValueError(f"--extra-rooms {rooms}: must be >= 0")
+        raise ValueError(f"--curve: {rooms} extra rooms; the numbers must be >= 0")
     if rooms == 0:
         return []
     from pipeline.data.synth import mitsuba_backend as mb
@@ -135,9 +136,11 @@ def extra_rooms(
                 for s in missing
             }
             bar = tqdm(total=len(missing) * CHUNK, desc=f"extra rooms ({variant})", unit="room")
-            for fut in futures:  # in order: a chunk written is whole
+            for fut in futures:  # in order
                 records = fut.result()
-                torch.save(records, cache / f"chunk_{futures[fut]:05d}.pt")
+                path = cache / f"chunk_{futures[fut]:05d}.pt"
+                torch.save(records, path.with_suffix(".tmp"))
+                os.replace(path.with_suffix(".tmp"), path)  # a chunk on disk is whole, even if interrupted
                 bar.update(len(records))
             bar.close()
     out = []
@@ -145,6 +148,6 @@ def extra_rooms(
         path = cache / f"chunk_{s:05d}.pt"
         try:
             out.extend(torch.load(path, weights_only=False))
-        except Exception as exc:  # a truncated file from an interrupted run
+        except Exception as exc:  # a damaged file
             raise ValueError(f"{path}: unreadable ({exc}); delete it and run again") from exc
     return out[:rooms]

@@ -55,7 +55,7 @@ def test_the_cache_resumes_and_refuses_other_settings(tmp_path, monkeypatch):
     (cache / "chunk_00002.pt").write_bytes(b"truncated")
     with pytest.raises(ValueError, match="chunk_00002.pt"):
         lr.extra_rooms(cache, 4, seed=0, profile="micro", height=8)
-    with pytest.raises(ValueError, match="--extra-rooms -1"):
+    with pytest.raises(ValueError, match="--curve: -1 extra rooms"):
         lr.extra_rooms(cache, -1)
     assert lr.extra_rooms(tmp_path / "unused", 0) == [] and not (tmp_path / "unused").exists()
 
