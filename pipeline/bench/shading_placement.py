@@ -531,13 +531,7 @@ def run(
     report = {
         "data_dir": str(data_dir),
         "grid": grid,
-        "sub": sub,
-        "pixels": pixels,
-        "trim": trim,
-        "seed": seed,
-        "bounce": bool(bounce),
-        "box": box,
-        "depth_noise": float(depth_noise),
+        **options,
         "bounce_texels": BOUNCE_TEXELS if bounce else None,
         "gbuffers": (
             "ground truth"
