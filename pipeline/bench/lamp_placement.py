@@ -110,11 +110,16 @@ class PlacementNet(nn.Module):
         return self.head(pooled if extra is None else torch.cat([pooled, extra], 1)) / self.temperature
 
 
+def soft_cross_entropy(logits: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
+    """Mean over views of the cross-entropy (nats) of softmax(logits) (N, C) to distributions target (N, C)."""
+    return -(target * F.log_softmax(logits, -1)).sum(1).mean()
+
+
 def calibrated_cross_entropy(logits: torch.Tensor, target: torch.Tensor) -> tuple[float, float]:
     """The lowest mean cross-entropy of softmax(logits / T) to the distributions target over the
     temperatures T of `TEMPERATURES`, and that T: a net that ranks the cells well but is overconfident
     is not charged for the confidence, which one scalar on validation views corrects."""
-    scores = torch.stack([-(target * F.log_softmax(logits / t, -1)).sum(1).mean() for t in TEMPERATURES])
+    scores = torch.stack([soft_cross_entropy(logits / t, target) for t in TEMPERATURES])
     best = int(torch.argmin(scores))
     return float(scores[best]), float(TEMPERATURES[best])
 
@@ -191,7 +196,7 @@ def train(
         net.train()
         for idx in torch.randperm(len(xs), generator=g).split(16):
             logits = net(xs[idx], None if es is None else es[idx])
-            loss = -(ts[idx] * F.log_softmax(logits, -1)).sum(1).mean()
+            loss = soft_cross_entropy(logits, ts[idx])
             opt.zero_grad()
             loss.backward()
             opt.step()
@@ -201,7 +206,7 @@ def train(
             if calibrate:
                 score, temperature = calibrated_cross_entropy(logits, target_val)
             else:
-                score, temperature = float(-(target_val * F.log_softmax(logits, -1)).sum(1).mean()), 1.0
+                score, temperature = float(soft_cross_entropy(logits, target_val)), 1.0
         curve.append(score)
         if curve[-1] < best:
             best, best_state = curve[-1], copy.deepcopy(net.state_dict())
@@ -494,13 +499,12 @@ def plot(report: dict, path) -> None:
             ax.plot(sizes, [np.mean([r[key] for r in rows if r["rooms"] == n]) for n in sizes], "-", label="mean")
             prior = "training rooms' mean"
             if key == "share":
-                ref = report["placement"][prior]["share_on_lamp_cells"]
+                ax.axhline(report["placement"][prior]["share_on_lamp_cells"], color="grey", ls="--", label=prior)
             else:
-                ref = report["light"][prior]["surf"]["nmse"]
-            ax.axhline(ref, color="grey", ls="--", label=prior)
-            true = report["light"]["true placement"]["surf"]["nmse"] if key == "surf" else None
-            if true is not None:
-                ax.axhline(true, color="green", ls=":", label="true placement")
+                ax.axhline(report["light"][prior]["surf"]["nmse"], color="grey", ls="--", label=prior)
+                ax.axhline(
+                    report["light"]["true placement"]["surf"]["nmse"], color="green", ls=":", label="true placement"
+                )
             ax.set_xscale("log")
             ax.set_xticks(sizes, [str(n) for n in sizes], fontsize=8)
             ax.xaxis.set_minor_formatter(NullFormatter())

@@ -40,14 +40,15 @@ def photo_input(im: torch.Tensor, height: int) -> torch.Tensor:
 
 
 def synth_config(profile: str):
-    """`synthesize`'s SynthConfig on `profile` (each room drawn with the profile's views; its first is used)."""
+    """`synthesize`'s SynthConfig on `profile` (each room drawn with the profile's views; its first is used)
+    and the hash of that `synth` section (`bench.common.config_hash`)."""
     from omegaconf import OmegaConf
 
-    from pipeline.bench.common import compose
+    from pipeline.bench.common import compose, config_hash
     from pipeline.data.synth.generate import SynthConfig
 
-    cfg = compose("synthesize", [f"profile={profile}"])
-    return SynthConfig.from_dict(OmegaConf.to_container(cfg.synth, resolve=True))
+    synth = compose("synthesize", [f"profile={profile}"]).synth
+    return SynthConfig.from_dict(OmegaConf.to_container(synth, resolve=True)), config_hash(synth)
 
 
 def render_photos(indices: list[int], seed: int, cfg, variant: str, threads: int, height: int) -> list[dict]:
@@ -87,14 +88,6 @@ def render_photos(indices: list[int], seed: int, cfg, variant: str, threads: int
     return out
 
 
-def _meta(seed: int, profile: str, height: int, cfg) -> dict:
-    import hashlib
-    from dataclasses import asdict
-
-    synth = hashlib.sha256(json.dumps(asdict(cfg), sort_keys=True, default=list).encode()).hexdigest()[:16]
-    return {"seed": seed, "profile": profile, "height": height, "chunk": CHUNK, "synth_hash": synth}
-
-
 def extra_rooms(
     cache: str | Path, rooms: int, seed: int = 0, profile: str = "tiny", height: int = 60, workers: int = 0
 ) -> list[dict]:
@@ -106,10 +99,10 @@ def extra_rooms(
         return []
     from pipeline.data.synth import mitsuba_backend as mb
 
-    cfg = synth_config(profile)
+    cfg, synth_hash = synth_config(profile)
     cache = Path(cache)
     cache.mkdir(parents=True, exist_ok=True)
-    meta = _meta(seed + SEED_OFFSET, profile, height, cfg)
+    meta = {"seed": seed + SEED_OFFSET, "profile": profile, "height": height, "chunk": CHUNK, "synth_hash": synth_hash}
     meta_path = cache / "meta.json"
     if meta_path.exists():
         held = json.loads(meta_path.read_text())

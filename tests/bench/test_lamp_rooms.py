@@ -18,7 +18,7 @@ from pipeline.data.synth import mitsuba_backend as mb
 def test_a_room_is_rendered_as_the_stage_renders_it(micro_root):
     """Room 0 of the stage's seed comes out as `synthesize` wrote it: the same camera, the same photo
     (to float16), the same box and lamps."""
-    cfg = lr.synth_config("micro")
+    cfg, _ = lr.synth_config("micro")
     (record,) = lr.render_photos([0], 0, cfg, mb.choose_variant("auto"), 1, 16)
     scene = micro_root / "scene_0000"
     camera = json.loads((scene / "cameras.json").read_text())["000"]
