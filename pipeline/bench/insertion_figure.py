@@ -65,7 +65,6 @@ def mitsuba_scene(room: Room, shapes: list, materials: list, max_depth: int, fol
     """The room with world-space `shapes` added, each with its (albedo, roughness, metallic); meshes go
     through PLY files written into `folder`."""
     import mitsuba as mi
-    import trimesh
 
     d = mb.scene_dict(room, max_depth)
     for k, (shape, (albedo, rough, metal)) in enumerate(zip(shapes, materials, strict=True)):
@@ -75,7 +74,7 @@ def mitsuba_scene(room: Room, shapes: list, materials: list, max_depth: int, fol
                 d[f"inserted_{k}_{j}"] = {"type": "sphere", "center": [x, y, z], "radius": float(r), "bsdf": bsdf}
         else:
             path = folder / f"inserted_{k}.ply"
-            trimesh.Trimesh(shape[0], shape[1], process=False).export(path)
+            mb.write_mesh_ply({"vertices": shape[0], "faces": shape[1]}, path)
             d[f"inserted_{k}"] = {"type": "ply", "filename": str(path), "bsdf": bsdf, "face_normals": True}
     return mi.load_dict(d, parallel=False, optimize=False)
 

@@ -55,10 +55,8 @@ def render_photos(indices: list[int], seed: int, cfg, variant: str, threads: int
     """Rooms `indices` of `seed` (a worker job): per room its index, the photo as `lamp_placement`'s input
     (3, height, width) float16, the room's size and lamp shapes, and the camera's 4x4 world_from_view."""
     from pipeline.data.synth import mitsuba_backend as mb
-    from pipeline.data.synth.denoise import denoise_hdr
-    from pipeline.data.synth.generate import scene_seed
-    from pipeline.data.synth.scene import generate_room, propose_camera
-    from pipeline.data.synth.views import camera_is_usable
+    from pipeline.data.synth.generate import render_photo, scene_seed, usable_camera
+    from pipeline.data.synth.scene import generate_room
 
     mb.init_mitsuba(variant, threads)
     out = []
@@ -66,14 +64,8 @@ def render_photos(indices: list[int], seed: int, cfg, variant: str, threads: int
         s_seed = scene_seed(seed, index)
         room, footprints, rng = generate_room(s_seed, cfg.views, cfg.room)  # the stage's draw; view 0 used
         scene = mb.load_scene(room, cfg.max_depth)
-        camera = room.cameras[0]
-        for _ in range(20):  # as `generate.render_scene` redraws an unusable camera
-            if camera_is_usable(scene, camera):
-                break
-            camera = propose_camera(room, rng, cfg.room, footprints)
-        im = mb.render_view(scene, camera, cfg.width, cfg.height, cfg.spp, seed=s_seed * 64)
-        if cfg.denoise:
-            im = denoise_hdr(im)
+        camera, _ = usable_camera(scene, room, room.cameras[0], rng, cfg.room, footprints)
+        im = render_photo(scene, camera, cfg, s_seed * 64)
         if not np.isfinite(im).all():
             raise ValueError(f"room {index} of seed {seed}: the rendered photo holds NaN or inf")
         shapes = [s for s in room.to_json()["shapes"] if s["role"] == "lamp"]

@@ -5,7 +5,7 @@ view, 741x500 sRGB, a motorcycle in a lab), with its calibration (focal length 9
 of view of 40.9 degrees) and its measured disparity map. Through the path `invrender insert` runs
 (`models.insertion.insert_into`): MaterialNet's G-buffers, then for each LightNet export given
 (`--light-net NAME=PATH`, e.g. one per out-of-view branch) a mirror sphere, a glossy and a diffuse vase
-(`ops.meshes.lathe`, a mesh) resting on the floor. The three pixels come from the predicted normals: in the
+(`ops.meshes.vase`, a mesh) resting on the floor. The three pixels come from the predicted normals: in the
 lowest third of the image, where the normal points up (view-space y > 0.8), at the candidates nearest to a
 quarter, half and three quarters of the width.
 
@@ -31,10 +31,9 @@ from pipeline.data.formats.photo import linear_to_srgb, srgb8_to_linear
 from pipeline.models.insertion import OBJECT_MATERIALS, InsertedObject, insert_into, prepare_view
 from pipeline.models.light_net import load_light_export
 from pipeline.models.material_net import load_material_export
-from pipeline.ops.meshes import lathe
+from pipeline.ops.meshes import vase as vase_mesh
 
 FOCAL_PX, BASELINE_M, DOFFS_PX = 994.978, 0.193001, 31.086  # the down-sampled images' calibration
-VASE_PROFILE = ((0.30, 0.0), (0.45, 0.2), (0.50, 0.45), (0.35, 0.75), (0.20, 0.9), (0.25, 1.0))  # radius, height
 
 
 def photo() -> tuple[np.ndarray, np.ndarray, float]:
@@ -68,7 +67,7 @@ def floor_pixels(normal: torch.Tensor, depth: torch.Tensor, count: int = 3) -> l
 
 def objects_at(pixels: list[tuple[int, int]]) -> list[InsertedObject]:
     """A mirror sphere, a glossy and a diffuse vase at the three pixels."""
-    vase = lathe(torch.tensor(VASE_PROFILE, dtype=torch.float64), 32)
+    vase = vase_mesh()
     shapes = ("sphere", vase, vase)
     return [
         InsertedObject(shape, r, c, OBJECT_MATERIALS[m], turn=0.0, label=f"object {k + 1}")

@@ -124,6 +124,8 @@ def read_cases(root: str | Path, scene: str, view: str, height: int, width: int)
             missing = [f for f in fields if f not in e]
             if missing:
                 raise DatasetError(f"{js}: {key}[{i}] lacks {missing}")
+            if key == "objects" and e.get("mesh") is not None:
+                _check_mesh(e["mesh"], f"{js}: objects[{i}].mesh")
     try:
         with np.load(npz, allow_pickle=False) as z:
             arrays = {k: z[k] for k in z.files}
@@ -172,6 +174,22 @@ def read_cases(root: str | Path, scene: str, view: str, height: int, width: int)
                 )
             )
     return out
+
+
+def _check_mesh(mesh, where: str) -> None:
+    """A case object's triangles: {"vertices": (V, 3) finite metres, "faces": (F >= 1, 3) indices into
+    them}; refused naming `where` otherwise."""
+    try:
+        vertices = np.asarray(mesh["vertices"], np.float64)
+        faces = np.asarray(mesh["faces"])
+    except (TypeError, KeyError, ValueError) as exc:
+        raise DatasetError(f"{where}: expected vertices (V, 3) and faces (F, 3) ({exc!r})") from exc
+    if vertices.ndim != 2 or vertices.shape[1] != 3 or not np.isfinite(vertices).all():
+        raise DatasetError(f"{where}: vertices must be finite (V, 3), got shape {vertices.shape}")
+    if faces.ndim != 2 or faces.shape[1] != 3 or not len(faces) or faces.dtype.kind not in "iu":
+        raise DatasetError(f"{where}: faces must be (F >= 1, 3) integers, got {faces.dtype} {faces.shape}")
+    if faces.min() < 0 or faces.max() >= len(vertices):
+        raise DatasetError(f"{where}: faces index outside the {len(vertices)} vertices")
 
 
 def _ring_arrays(arrays: dict, name: str, npz: Path, js: Path, height: int, width: int) -> dict:

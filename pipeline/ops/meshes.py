@@ -95,3 +95,12 @@ def lathe(profile: torch.Tensor, segments: int = 32) -> tuple[torch.Tensor, torc
     caps_bottom = torch.stack([torch.full((segments,), cb), nxt[0], idx[0]], -1)
     caps_top = torch.stack([torch.full((segments,), ct), idx[-1], nxt[-1]], -1)
     return vertices, torch.cat([side, caps_bottom, caps_top])
+
+
+VASE_PROFILE = ((0.30, 0.0), (0.45, 0.2), (0.50, 0.45), (0.35, 0.75), (0.20, 0.9), (0.25, 1.0))  # radius, height
+
+
+def vase(segments: int = 32) -> tuple[torch.Tensor, torch.Tensor]:
+    """The project's own mesh object: a vase (`lathe` of `VASE_PROFILE`, one unit tall and wide, its
+    base at the origin, up +y), concave at its neck. Returns float64 vertices (V, 3) and long faces (F, 3)."""
+    return lathe(torch.tensor(VASE_PROFILE, dtype=torch.float64), segments)

@@ -18,7 +18,7 @@ from pipeline.tracking import publish, stage_run
 
 OOD_PREFIX = "ood"  # its rooms are ood_0000, ...: no view id names a room of the main set
 
-PHASES = ("build", "camera", "gbuffer", "render", "lighting", "cases", "write")
+PHASES = ("build", "camera", "gbuffer", "render", "denoise", "lighting", "cases", "write")
 
 
 def synthesize_metrics(summary: dict) -> tuple[dict[str, float], dict[str, float]]:

@@ -79,7 +79,7 @@ from pipeline.ops.camera import backproject
 from pipeline.ops.envmap import sphere_lookup
 from pipeline.ops.guide import SphereGuide
 from pipeline.systems.lighting_baselines import constant_light, mean_training_radiance, scaled_constant_light
-from pipeline.systems.ring_scoring import RING_ROWS, ring_change, ring_scores, view_spheres
+from pipeline.systems.ring_scoring import RING_ROWS, ring_change, ring_scores, view_shape
 
 ROWS = ("lightnet", "lightnet_gt_gbuffers", "constant", "scaled_constant", "nearest_probe", "oracle")
 GUIDED = ("nearest_probe", "oracle")  # rows whose light is sharp and cheap to query: sampled with a light guide
@@ -180,7 +180,7 @@ def score_view(
         result = {"case": case, "rows": scores, "renders": renders, "seconds": seconds}
         if ring and case.kind == "object":
             t0 = time.perf_counter()
-            shape = view_spheres(case.description["spheres"], ctx["w2v"])
+            shape = view_shape(case.description, ctx["w2v"])
             # the proxy where the room truly is, as the object is placed where it truly is; its materials
             # (and every row's light) the predictions
             proxy = {**pred, "depth": gt["depth"], "normal": gt["normal"]}
@@ -232,14 +232,17 @@ def case_group(kind: str, label: str) -> str:
 
 
 def summarise(records: list[dict], resamples: int, seed: int, rows: tuple = ROWS) -> dict[str, float]:
-    """Means per group (material class of objects, kind of edits, and all of each) and paired bootstrap
-    intervals of LightNet minus every other row of `rows` (whose first is `lightnet`)."""
+    """Means per group (material class of objects, kind of edits, and all of each; and the objects' shape,
+    `insert/<shape>`, for records with a `shape`) and paired bootstrap intervals of LightNet minus every
+    other row of `rows` (whose first is `lightnet`)."""
     metrics: dict[str, float] = {}
     groups: dict[str, list[dict]] = {}
     for r in records:
         group = case_group(r["kind"], r["label"])
         groups.setdefault(group, []).append(r)
         groups.setdefault(f"{group.split('/')[0]}/all", []).append(r)
+        if r["kind"] == "object" and r.get("shape"):
+            groups.setdefault(f"insert/{r['shape']}", []).append(r)
     for group, rs in sorted(groups.items()):
         metrics[f"{group}/cases"] = float(len(rs))
         for row in rows:
@@ -315,11 +318,11 @@ def ring_panels(results: list[dict], photo_of: dict, n: int) -> list[dict]:
     return [ring_panel(res, *photo_of[res["view"]]) for res in picked]
 
 
-def figure_panels(results: list[dict], photo_of: dict, kind: str, n: int) -> list[dict]:
-    """The first `n` scored cases of `kind` (`object` or `edit`) as figure panels (`case_panel`);
+def figure_panels(results: list[dict], photo_of: dict, kind: str, n: int, rows: tuple = FIGURE_ROWS) -> list[dict]:
+    """The first `n` scored cases of `kind` (`object` or `edit`) as figure panels (`case_panel`) of `rows`;
     photo_of: view id -> (photo, scale, view id)."""
     picked = [res for res in results if res["case"].kind == kind][:n]
-    return [case_panel(res, *photo_of[res["view"]]) for res in picked]
+    return [case_panel(res, *photo_of[res["view"]], rows) for res in picked]
 
 
 def _dataset_record(root: Path) -> dict:

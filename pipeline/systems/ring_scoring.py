@@ -56,6 +56,17 @@ def view_spheres(spheres: list, world_from_view: np.ndarray) -> torch.Tensor:
     return torch.from_numpy(np.concatenate([centres, s[:, 3:]], 1))
 
 
+def view_shape(description: dict, world_from_view: np.ndarray):
+    """An object case's shape in view space, as `models.insertion.cast_shape` takes it: its triangles
+    (vertices (V, 3) float64 metres, faces (F, 3) long) when its description has a `mesh`, else its
+    spheres (`view_spheres`)."""
+    mesh = description.get("mesh")
+    if mesh is None:
+        return view_spheres(description["spheres"], world_from_view)
+    vertices = (np.asarray(mesh["vertices"], np.float64) - world_from_view[:3, 3]) @ world_from_view[:3, :3]
+    return torch.from_numpy(vertices), torch.as_tensor(np.asarray(mesh["faces"], np.int64))
+
+
 def ring_change(
     layer,
     gbuffer: dict,

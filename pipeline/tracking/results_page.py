@@ -276,9 +276,11 @@ def section_edit(reports: Path, facts: dict | None = None) -> list[str]:
     for kind, g in groups:
         for who in EDIT_ROWS[1:]:
             p = f"{kind}/{g}/lightnet_minus_{who}/psnr"
-            if f"{p}_diff" in m:
-                diff_rows.append([f"{kind} {g}", who, signed(m[f"{p}_diff"]), interval(m[f"{p}_lo"], m[f"{p}_hi"])])
+            if f"{p}_diff" in m:  # no interval where a group's cases come from one view
+                ci = interval(m[f"{p}_lo"], m[f"{p}_hi"]) if f"{p}_lo" in m else "n/a (one view)"
+                diff_rows.append([f"{kind} {g}", who, signed(m[f"{p}_diff"]), ci])
     lines += md_table(["cases", "against", "difference", "95 % interval"], diff_rows)
+    lines += shape_lines(m)
     lines += ring_lines(m, read_json(reports / "bench/scoring_convergence_ring.json"))
     a = {w: m.get(f"insert/all/{w}/psnr") for w in ("lightnet", "scaled_constant", "oracle")}
     if all(v is not None for v in a.values()) and a["oracle"] != a["scaled_constant"]:
@@ -293,6 +295,67 @@ def section_edit(reports: Path, facts: dict | None = None) -> list[str]:
         lines += ["", "Seconds per case: " + ", ".join(f"{k} {num(v, 3)}" for k, v in sorted(per_case.items()))]
         lines[-1] += f"; the stage's wall time {num(t.get('wall_seconds'), 3)} s."
     lines.append("")
+    return lines
+
+
+OBJECT_SHAPES = ("sphere", "vase", "snowman")  # the insertion cases' shapes (the vase a triangle mesh)
+
+
+def shape_lines(m: dict, prefix: str = "") -> list[str]:
+    """The insertion cases by the object's shape (`insert/<shape>`): each row's mean PSNR and LightNet minus
+    the nearest probe and the scaled constant; [] when the metrics hold no shape group."""
+    shapes = [g for g in OBJECT_SHAPES if f"{prefix}insert/{g}/cases" in m]
+    if not shapes:
+        return []
+    lines = ["", "By the object's shape (the vase is a triangle mesh, the snowman two spheres), PSNR (dB):", ""]
+    rows = [["cases", *(num(m[f"{prefix}insert/{g}/cases"]) for g in shapes)]]
+    rows += [
+        [who, *(num(m.get(f"{prefix}insert/{g}/{who}/psnr")) for g in shapes)]
+        for who in EDIT_ROWS
+        if f"{prefix}insert/{shapes[0]}/{who}/psnr" in m
+    ]
+    for who in ("nearest_probe", "scaled_constant"):
+        p = [f"{prefix}insert/{g}/lightnet_minus_{who}/psnr" for g in shapes]
+        if all(f"{k}_lo" in m for k in p):
+            rows.append(
+                [f"lightnet - {who}", *(f"{signed(m[f'{k}_diff'])} {interval(m[f'{k}_lo'], m[f'{k}_hi'])}" for k in p)]
+            )
+    return lines + md_table(["row", *shapes], rows)
+
+
+def ood_insertion_lines(reports: Path) -> list[str]:
+    """The `edit` stage's insertion cases in the out-of-distribution rooms (`ood/` metrics) beside the test
+    split's: each row's mean PSNR per class and LightNet minus each other row; [] without them."""
+    m = read_json(reports / "edit/metrics.json") or {}
+    if "ood/insert/all/cases" not in m:
+        return []
+    rows_ood = [who for who in EDIT_ROWS if f"ood/insert/all/{who}/psnr" in m]
+    lines = [
+        "",
+        "Object insertion (`edit`, `reports/edit/metrics.json`, `ood/` keys; `reports/edit/ood_insertion.png`):",
+        "PSNR (dB) on the objects' pixels, the test split's beside the out-of-distribution rooms', the same rows",
+        "and scoring (no oracle on the latter).",
+        "",
+    ]
+    header = ["row", *(f"{g}, {label}" for g in INSERT_GROUPS for label in ("test", "ood"))]
+    rows = [["cases", *(num(m.get(f"{p}insert/{g}/cases")) for g in INSERT_GROUPS for p in ("", "ood/"))]]
+    for who in rows_ood:
+        rows.append([who, *(num(m.get(f"{p}insert/{g}/{who}/psnr")) for g in INSERT_GROUPS for p in ("", "ood/"))])
+    lines += md_table(header, rows)
+    diff_rows = []
+    for g in INSERT_GROUPS:
+        for who in rows_ood[1:]:
+            key = f"insert/{g}/lightnet_minus_{who}/psnr"
+            cells = [
+                f"{signed(m[f'{p}{key}_diff'])} {interval(m[f'{p}{key}_lo'], m[f'{p}{key}_hi'])}"
+                if f"{p}{key}_lo" in m
+                else "n/a"
+                for p in ("", "ood/")
+            ]
+            diff_rows.append([g, who, *cells])
+    lines += ["", "LightNet minus each other row, PSNR (dB), 95 % interval over views:", ""]
+    lines += md_table(["objects", "against", "test", "out of distribution"], diff_rows)
+    lines += shape_lines(m, "ood/")
     return lines
 
 
@@ -452,6 +515,7 @@ def section_out_of_distribution(reports: Path) -> list[str]:
             f"{who}, {label}" for _, label in OOD_ENTRIES for who in ("LightNet", "scaled constant", "difference")
         ]
         lines += md_table(header, rows)
+    lines += ood_insertion_lines(reports)
     lines.append("")
     return lines
 

@@ -36,9 +36,12 @@ def test_val_and_test_views_have_cases_and_train_views_none(micro_root):
     assert kinds == {"object", "edit"}
     for s, v in _views(micro_root):
         desc = json.loads(case_io.paths(micro_root, s, v)[0].read_text())
+        kinds = [obj["kind"] for obj in desc["objects"]]
+        assert kinds == list(synth_cases.CASE_OBJECTS[: len(kinds)])  # a sphere and a mesh in every view
         for obj in desc["objects"]:
-            assert obj["kind"] in ("sphere", "snowman") and obj["material_class"] in ("mirror", "glossy", "diffuse")
-            assert len(obj["spheres"]) == (1 if obj["kind"] == "sphere" else 2)
+            assert obj["material_class"] in ("mirror", "glossy", "diffuse")
+            assert len(obj["spheres"]) == (2 if obj["kind"] == "snowman" else 1)
+            assert (obj["mesh"] is not None) == (obj["kind"] in synth_cases.MESHES)
 
 
 def _distance_to_shape(p: np.ndarray, shape) -> float:
@@ -61,30 +64,42 @@ def test_objects_are_clear_of_the_room_and_resting_ones_stand_on_a_surface(micro
     from pipeline.data.synth.scene import Room
     from pipeline.ops.primitives import LIFT_M
 
-    checked = 0
+    checked = meshes = 0
     for s, v in _views(micro_root):
         room = Room.from_json(json.loads((micro_root / s / "scene.json").read_text()))
         scene = mb.load_scene(room)
         for c in _read(micro_root, s, v)[1]:
             if c.kind != "object":
                 continue
-            for x, y, z, r in c.description["spheres"]:
+            mesh = c.description["mesh"]
+            if mesh is not None:  # every vertex outside every shape of the room (a box's inside is 0 away)
+                for p in np.asarray(mesh["vertices"])[::3]:
+                    gap = min(_distance_to_shape(p, shape) for shape in room.shapes)
+                    assert gap > 0, (s, v, c.name, gap)
+                meshes += 1
+            for x, y, z, r in [] if mesh is not None else c.description["spheres"]:
                 gap = min(_distance_to_shape(np.array([x, y, z]), shape) for shape in room.shapes) - r
                 assert gap > 0, (s, v, c.name, gap)
             if c.description["support"] == "resting":
-                x, y, z, r = c.description["spheres"][0]
+                if mesh is not None:
+                    vertices = np.asarray(mesh["vertices"])
+                    x, y, z = vertices[np.argmin(vertices[:, 1])]
+                    r = 0.0
+                else:
+                    x, y, z, r = c.description["spheres"][0]
                 foot = np.array([[x, y - r + 0.01, z]])
                 hit = mb.intersect(scene, foot, np.array([[0.0, -1.0, 0.0]]))
                 assert hit["t"][0] == pytest.approx(0.01 + LIFT_M, abs=1e-4), (s, v, c.name)
             checked += 1
-    assert checked >= 2
+    assert checked >= 2 and meshes >= 1
 
 
 def test_object_gbuffers_match_analytic_ray_casting(micro_root):
     """Mitsuba's hits at pixel centres (what synthesize stores) against `models.insertion.object_gbuffer`'s
-    analytic sphere intersection, occluded by the view's ground-truth depth."""
+    analytic sphere and mesh intersection, occluded by the view's ground-truth depth."""
     from pipeline.data.synth.mitsuba_backend import world_from_view
     from pipeline.models.insertion import object_gbuffer
+    from pipeline.systems.ring_scoring import view_shape
 
     for s, v in _views(micro_root):
         maps, cases = _read(micro_root, s, v)
@@ -97,9 +112,7 @@ def test_object_gbuffers_match_analytic_ray_casting(micro_root):
         for c in cases:
             if c.kind != "object":
                 continue
-            world = np.asarray(c.description["spheres"])
-            view = np.concatenate([(world[:, :3] - w2v[:3, 3]) @ w2v[:3, :3], world[:, 3:]], 1)
-            g = object_gbuffer([torch.from_numpy(view)], depth, float(cam["fov_x_deg"]))
+            g = object_gbuffer([view_shape(c.description, w2v)], depth, float(cam["fov_x_deg"]))
             same = np.intersect1d(g["pixel"].numpy(), c.pixel.numpy())
             # pixel sets agree but where a silhouette or a contact crosses a pixel centre within float32
             # noise: a couple of pixels, or 5 % of a large object

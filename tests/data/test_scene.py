@@ -165,7 +165,8 @@ def test_the_out_of_distribution_style_draws_what_the_standard_rooms_never_do(ro
     from tests.conftest import compose_cfg
 
     cfg = ood_config(compose_cfg("synthesize", ["profile=tiny"]))
-    assert cfg is not None and cfg.splits == {"train": 0.0, "val": 0.0, "test": 1.0} and not cfg.cases.enabled
+    assert cfg is not None and cfg.splits == {"train": 0.0, "val": 0.0, "test": 1.0}
+    assert cfg.cases.enabled and tuple(cfg.cases.edits) == (0, 0)  # insertion cases only
     loft = [generate_room(s, views=1, cfg=cfg.room)[0] for s in SEEDS]
 
     def walls(room, key):

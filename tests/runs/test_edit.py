@@ -34,6 +34,7 @@ def test_stage_scores_every_row_with_paired_intervals(micro_root, micro_shards, 
             "progress=false",
             "bootstrap=200",
             "figure_cases=2",
+            f"ood.data_root={micro_root.parent / 'synthesize_ood'}",
         ],
     )
     metrics = run(cfg)
@@ -65,9 +66,24 @@ def test_stage_scores_every_row_with_paired_intervals(micro_root, micro_shards, 
     for name in ("metrics.json", "timings.json", "insertion.png", "editing.png", "shadows.png"):
         assert (report / name).is_file(), name
     assert set(json.loads((report / "metrics.json").read_text())) == set(metrics)
+    # every view has a sphere and the project's mesh (a vase): each shape summarised on its own
+    assert metrics["insert/sphere/cases"] >= 1 and metrics["insert/vase/cases"] >= 1
+    shapes = ("insert/sphere/cases", "insert/vase/cases", "insert/snowman/cases")
+    assert sum(metrics.get(k, 0) for k in shapes) == metrics["insert/all/cases"]
+    # the out-of-distribution rooms' insertion cases, by the rows of `ood.rows` (no oracle, no edits)
+    ood_rows = tuple(cfg.ood.rows)
+    assert metrics["ood/insert/all/cases"] >= 1 and "ood/edit/all/cases" not in metrics
+    assert all(f"ood/insert/all/{row}/psnr" in metrics for row in ood_rows)
+    assert not any(k.startswith("ood/") and "/oracle/" in k for k in metrics)
+    assert all(f"ood/insert/all/lightnet_minus_{row}/psnr_diff" in metrics for row in ood_rows[1:])
+    ood_cases = (report / "ood_cases.csv").read_text().splitlines()
+    assert len(ood_cases) == 1 + metrics["ood/insert/all/cases"]
+    assert all(line.split(",")[0].startswith("ood_") for line in ood_cases[1:])
+    assert (report / "ood_insertion.png").is_file()
 
 
-def test_oracle_render_matches_mitsuba_within_its_noise(micro_root, mitsuba_variant):
+@pytest.mark.parametrize("shape", ["sphere", "vase"])
+def test_oracle_render_matches_mitsuba_within_its_noise(micro_root, mitsuba_variant, shape):
     """An object's pixels rendered by the MC layer under the oracle (Mitsuba's radiance for each sample
     ray) against Mitsuba's own render of those pixels at 2048 spp. The per-pixel differences d_i are
     independent with mean zero when the evaluation is exact, so t = mean(d) / (sd(d)/sqrt(M)) is within
@@ -90,9 +106,11 @@ def test_oracle_render_matches_mitsuba_within_its_noise(micro_root, mitsuba_vari
                 maps = iv.read_view(micro_root, scene, view).maps
                 H, W = maps["im"].shape[:2]
                 for c in case_io.read_cases(micro_root, scene, view, H, W):
-                    if c.kind == "object" and c.label == "mirror" and found is None:
+                    if c.kind != "object" or c.description["kind"] != shape or found is not None:
+                        continue
+                    if shape == "vase" or c.label == "mirror":  # a mirror sphere; a vase of any class
                         found = (scene, view, maps, c)
-    assert found is not None, "the micro data holds no mirror object"
+    assert found is not None, f"the micro data holds no {shape} to check"
     scene, view, maps, case = found
     room = Room.from_json(json.loads((Path(micro_root) / scene / "scene.json").read_text()))
     camera = room.cameras[int(view)]

@@ -1,9 +1,10 @@
 """Object-insertion and material-editing cases with Mitsuba ground truth, for val and test views.
 
-Insertion: a new object (a sphere, or a `snowman` of two overlapping spheres, which is non-convex) of one
-material class, either resting on a visible horizontal surface (floor, table or cabinet top) or floating
-at a free point in view, clear of the room. Editing: one visible material (a furniture piece or the
-floor) given another material (polished metal, or a new base colour).
+Insertion: a new object (a sphere, a `snowman` of two overlapping spheres, or a `vase`, the project's
+triangle mesh `ops.meshes.vase`; the last two non-convex) of one material class, either resting on a
+visible horizontal surface (floor, table or cabinet top) or floating at a free point in view, clear of
+the room. Editing: one visible material (a furniture piece or the floor) given another material (polished
+metal, or a new base colour).
 
 Each case is rendered by Mitsuba's `path` integrator (the view's own integrator and depth) in the room
 with the change applied, at the pixel centres the case covers: one camera ray per pixel centre, `spp`
@@ -32,11 +33,15 @@ import torch
 from pipeline.data.synth import mitsuba_backend as mb
 from pipeline.data.synth.materials import Material, hsv_colour, metal_colour
 from pipeline.data.synth.scene import Camera, Room, Shape, sphere_matrix
-from pipeline.ops.primitives import LIFT_M, OBJECT_KINDS, object_spheres
+from pipeline.ops.meshes import place_mesh, vase
+from pipeline.ops.primitives import LIFT_M, object_spheres
 
 # material classes of inserted objects: (roughness, metallic); albedo is drawn per object
 OBJECT_CLASSES = {"mirror": (0.05, 1.0), "glossy": (0.25, 0.0), "diffuse": (0.9, 0.0)}
 EDIT_KINDS = ("metal", "albedo")
+CASE_OBJECTS = ("sphere", "vase", "snowman")  # the k-th object of a view is of the k-th kind
+MESHES = {"vase": vase}  # object kinds that are triangle meshes: their (vertices, faces) in unit size
+RESTING_CHECK_BELOW = -0.75  # a resting mesh's room is checked along directions with y above this
 
 
 @dataclass
@@ -59,7 +64,9 @@ class CaseConfig:
 
 @dataclass
 class InsertedObject:
-    """spheres: [[x, y, z, radius], ...] world metres (one for a sphere, two for a snowman)."""
+    """spheres: [[x, y, z, radius], ...] world metres (one for a sphere, two for a snowman; a mesh's
+    bounding sphere). mesh: a mesh object's triangles, {"vertices": (V, 3) world metres, "faces": (F, 3)
+    vertex indices}, None for the spheres."""
 
     kind: str
     spheres: list[list[float]]
@@ -69,6 +76,7 @@ class InsertedObject:
     metallic: float
     support: str  # resting | floating
     anchor_pixel: list[int]  # (row, col) the placement started from
+    mesh: dict | None = None
 
     def material(self) -> Material:
         return Material("inserted", list(self.albedo), float(self.roughness), float(self.metallic))
@@ -95,7 +103,7 @@ class ViewCases:
     edit_spp: int = 0
 
     def to_json(self) -> dict:
-        return {"version": 2, **asdict(self)}
+        return {"version": 3, **asdict(self)}
 
 
 # ----------------------------------------------------------------------------------------------------
@@ -103,10 +111,13 @@ class ViewCases:
 
 
 def room_with_object(room: Room, obj: InsertedObject) -> Room:
-    """A copy of `room` with the object's spheres added (one shared material)."""
+    """A copy of `room` with the object's spheres, or its mesh, added (one shared material)."""
     out = copy.deepcopy(room)
     out.materials.append(obj.material())
     m = len(out.materials) - 1
+    if obj.mesh is not None:
+        out.shapes.append(Shape("mesh", np.eye(4).tolist(), m, "inserted", mesh=obj.mesh))
+        return out
     for x, y, z, r in obj.spheres:
         out.shapes.append(Shape("sphere", sphere_matrix([x, y, z], r), m, "inserted"))
     return out
@@ -156,9 +167,10 @@ def fibonacci_directions(n: int) -> np.ndarray:
 CLEARANCE_DIRECTIONS = fibonacci_directions(256)
 
 
-def clearance(scene, centre: np.ndarray) -> float:
-    """Distance (m) from `centre` to the nearest surface along 256 even directions (inf if none)."""
-    d = CLEARANCE_DIRECTIONS
+def clearance(scene, centre: np.ndarray, min_y: float = -1.0) -> float:
+    """Distance (m) from `centre` to the nearest surface along the 256 even directions whose y is at least
+    `min_y` (all by default; inf if none is hit)."""
+    d = CLEARANCE_DIRECTIONS[CLEARANCE_DIRECTIONS[:, 1] >= min_y]
     hit = mb.intersect(scene, np.broadcast_to(centre, d.shape).copy(), d)
     return float(np.min(hit["t"]))
 
@@ -172,12 +184,24 @@ def _supported(scene, base: np.ndarray, radius: float) -> bool:
     return bool(np.all(np.abs(hit["t"] - 0.05) < 0.01))
 
 
-def _spheres_for(kind: str, base_or_centre: np.ndarray, radius: float, resting: bool) -> list[list[float]]:
-    """World-space sphere list of an object standing on (resting) or centred on a point, up = +y."""
-    s = object_spheres(
-        kind, torch.from_numpy(np.asarray(base_or_centre, np.float64)), torch.tensor([0.0, 1.0, 0.0]), radius, resting
-    )
-    return s.tolist()
+def _geometry_for(kind: str, point: np.ndarray, radius: float, resting: bool) -> tuple[list[list[float]], dict | None]:
+    """World-space geometry of an object of size `radius` (metres; a mesh's largest extent is 2 radius)
+    standing on (resting) or centred on `point`, up = +y: its sphere list and, for a mesh kind, its
+    triangles (the spheres then its bounding sphere)."""
+    up = torch.tensor([0.0, 1.0, 0.0], dtype=torch.float64)
+    point_t = torch.from_numpy(np.asarray(point, np.float64))
+    if kind not in MESHES:
+        return object_spheres(kind, point_t, up, radius, resting).tolist(), None
+    vertices, faces = MESHES[kind]()
+    size = 2.0 * radius
+    extent = vertices.max(0).values - vertices.min(0).values
+    height = float(extent[1] / extent.max()) * size  # along up, once scaled to its largest extent
+    base = point_t if resting else point_t - up * height / 2
+    placed = place_mesh(vertices, base, up, size, lift=LIFT_M if resting else 0.0).numpy()
+    centre = (placed.min(0) + placed.max(0)) / 2
+    bound = float(np.linalg.norm(placed - centre, axis=1).max())
+    mesh = {"vertices": placed.tolist(), "faces": faces.numpy().tolist()}
+    return [[*centre.tolist(), bound]], mesh
 
 
 def _bounding(spheres: list[list[float]]) -> tuple[np.ndarray, float]:
@@ -261,7 +285,7 @@ def _place_object(scene, camera, gb, kind, cls, rng, cfg: CaseConfig) -> Inserte
         frac = float(rng.uniform(0.35, 0.65)) if floating else 1.0
         radius = float(np.clip(rng.uniform(*cfg.radius_px) * px_scale * z[p] * frac / f, 0.05, 0.35))
         point = origin + (dirs_view[p] @ rot.T) * t[p] * frac
-        spheres = _spheres_for(kind, point, radius, resting=not floating)
+        spheres, mesh = _geometry_for(kind, point, radius, resting=not floating)
         centre, bound = _bounding(spheres)
         if np.linalg.norm(centre - origin) < bound + 0.3:
             continue
@@ -269,9 +293,11 @@ def _place_object(scene, camera, gb, kind, cls, rng, cfg: CaseConfig) -> Inserte
             if clearance(scene, centre) < bound + 0.05:
                 continue
         else:
-            if not all(clearance(scene, np.asarray(s[:3])) >= s[3] + LIFT_M / 2 for s in spheres):
-                continue
-            if not _supported(scene, point, spheres[0][3]):
+            if mesh is not None:  # its bounding sphere reaches below its support: the room above and around
+                clear = clearance(scene, centre, RESTING_CHECK_BELOW) >= bound + LIFT_M / 2
+            else:
+                clear = all(clearance(scene, np.asarray(s[:3])) >= s[3] + LIFT_M / 2 for s in spheres)
+            if not clear or not _supported(scene, point, spheres[0][3]):
                 continue
         if cls == "mirror":
             albedo = metal_colour(rng)
@@ -287,6 +313,7 @@ def _place_object(scene, camera, gb, kind, cls, rng, cfg: CaseConfig) -> Inserte
             metal,
             "floating" if floating else "resting",
             [int(rows[p]), int(cols[p])],
+            mesh,
         )
     return None
 
@@ -336,7 +363,7 @@ def generate_cases(
     height, width = gb["mask"].shape
     cases, arrays = ViewCases(spp=int(cfg.spp), edit_spp=int(cfg.edit_spp)), {}
     n_obj = int(rng.integers(cfg.objects[0], cfg.objects[1] + 1))
-    kinds = ["sphere", "snowman"] + [OBJECT_KINDS[int(rng.integers(2))] for _ in range(max(0, n_obj - 2))]
+    kinds = [CASE_OBJECTS[k % len(CASE_OBJECTS)] for k in range(n_obj)]
     classes = [list(OBJECT_CLASSES)[i] for i in rng.permutation(len(OBJECT_CLASSES))]
     for k, kind in enumerate(kinds[:n_obj]):
         for _round in range(3):  # a placement can be rejected as too hidden: draw another

@@ -101,6 +101,31 @@ def assign_splits(n: int, fractions: dict, seed: int, prefix: str = SCENE_PREFIX
     }
 
 
+CAMERA_REDRAWS = 20  # draws of a new camera for a view whose camera is unusable, before keeping the last
+
+
+def usable_camera(scene, room, camera, rng, room_cfg: RoomConfig, footprints) -> tuple:
+    """A view's camera, or, while it is unusable (`views.camera_is_usable`), a new one drawn from `rng`
+    (`scene.propose_camera`, at most `CAMERA_REDRAWS` times): (the camera, the draws it took)."""
+    for redraws in range(CAMERA_REDRAWS):
+        if camera_is_usable(scene, camera):
+            return camera, redraws
+        camera = propose_camera(room, rng, room_cfg, footprints)
+    return camera, CAMERA_REDRAWS
+
+
+def render_photo(scene, camera, cfg: SynthConfig, seed: int, timer: Timer | None = None) -> np.ndarray:
+    """A view's photo as the stage writes it: (H, W, 3) float32 HDR at `cfg`'s size and samples, denoised
+    when `cfg.denoise` (`timer` takes the `render` and `denoise` seconds)."""
+    timer = timer or Timer()
+    with timer("render"):
+        im = mb.render_view(scene, camera, cfg.width, cfg.height, cfg.spp, seed=seed)
+    if cfg.denoise:
+        with timer("denoise"):
+            im = denoise_hdr(im)
+    return im
+
+
 def render_scene(
     index: int,
     seed: int,
@@ -124,22 +149,14 @@ def render_scene(
     redraws = 0
     for v, cam in enumerate(room.cameras):
         with timer("camera"):
-            for _ in range(20):
-                if camera_is_usable(scene, cam):
-                    break
-                cam = propose_camera(room, rng, cfg.room, footprints)
-                redraws += 1
-        room.cameras[v] = cam
+            room.cameras[v], n = usable_camera(scene, room, cam, rng, cfg.room, footprints)
+        redraws += n
     cameras, valid_fraction, n_surf, n_free, n_obj, n_edit = {}, [], 0, 0, 0, 0
     for v, cam in enumerate(room.cameras):
         view = f"{v:03d}"
         with timer("gbuffer"):
             gb = gbuffer(scene, cam, cfg.width, cfg.height)
-        with timer("render"):
-            im = mb.render_view(scene, cam, cfg.width, cfg.height, cfg.spp, seed=s_seed * 64 + v)
-        if cfg.denoise:
-            with timer("denoise"):
-                im = denoise_hdr(im)
+        im = render_photo(scene, cam, cfg, s_seed * 64 + v, timer)
         with timer("lighting"):
             light = lighting_probes(scene, cam, gb, cfg.lighting, rng, seed=s_seed * 64 + v)
         with timer("write"):

@@ -15,6 +15,7 @@ import math
 import os
 import subprocess
 import sys
+import tempfile
 
 import numpy as np
 import torch
@@ -157,13 +158,36 @@ def bsdf_dict(mi, material) -> dict:
     return {"type": "principled", "base_color": base, "roughness": rough, "metallic": material.metallic}
 
 
-def scene_dict(room: Room, max_depth: int = 8) -> dict:
-    """The room as a Mitsuba scene dict (path integrator; sensors are built per view)."""
+def write_mesh_ply(mesh: dict, path) -> None:
+    """A `Shape.mesh` ({"vertices": (V, 3), "faces": (F, 3)}) as a binary PLY file (float32 vertices)."""
+    import trimesh
+
+    vertices = np.asarray(mesh["vertices"], np.float64)
+    faces = np.asarray(mesh["faces"], np.int64)
+    trimesh.Trimesh(vertices, faces, process=False).export(path)
+
+
+def scene_dict(room: Room, max_depth: int = 8, mesh_dir=None) -> dict:
+    """The room as a Mitsuba scene dict (path integrator; sensors are built per view). Mesh shapes are
+    written as PLY files into the folder `mesh_dir` (required when the room has one), which must exist
+    until the dict is loaded; they are flat-shaded (face normals), as the G-buffers' geometric normals."""
     import mitsuba as mi
 
     sc: dict = {"type": "scene", "integrator": {"type": "path", "max_depth": int(max_depth)}}
     bsdfs = [bsdf_dict(mi, m) for m in room.materials]
     for k, s in enumerate(room.shapes):
+        if s.kind == "mesh":
+            if mesh_dir is None:
+                raise ValueError(f"shape {k} ({s.role}) is a mesh: scene_dict needs a mesh_dir to write it to")
+            path = os.path.join(str(mesh_dir), f"shape_{k:03d}.ply")
+            write_mesh_ply(s.mesh, path)
+            sc[f"shape_{k:03d}_{s.role}"] = {
+                "type": "ply",
+                "filename": path,
+                "face_normals": True,
+                "bsdf": bsdfs[s.material],
+            }
+            continue
         d = {"type": s.kind, "to_world": mi.ScalarTransform4f(np.asarray(s.to_world)), "bsdf": bsdfs[s.material]}
         if s.emission is not None:
             d["emitter"] = {"type": "area", "radiance": {"type": "rgb", "value": list(s.emission)}}
@@ -180,7 +204,8 @@ def load_scene(room: Room, max_depth: int = 8):
     # and the optimiser's shape merging reorders shapes (and so their area lights) from run to run. The
     # emitter order decides which random numbers pick which light, so either would break "same seed,
     # same pixels" across processes.
-    return mi.load_dict(scene_dict(room, max_depth), parallel=False, optimize=False)
+    with tempfile.TemporaryDirectory(prefix="invrender_meshes_") as mesh_dir:  # read while loading
+        return mi.load_dict(scene_dict(room, max_depth, mesh_dir), parallel=False, optimize=False)
 
 
 def render_view(scene, camera: Camera, width: int, height: int, spp: int, seed: int) -> np.ndarray:

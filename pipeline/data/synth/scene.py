@@ -23,13 +23,16 @@ from pipeline.data.synth.materials import Material, random_material
 
 @dataclass
 class Shape:
-    """One primitive: kind in {rectangle, cube, sphere}, world-from-local 4x4, material index, role."""
+    """One primitive: kind in {rectangle, cube, sphere, mesh}, world-from-local 4x4, material index, role.
+    A `mesh` (inserted objects only) carries its triangles in `mesh`: {"vertices": (V, 3) world metres,
+    "faces": (F, 3) vertex indices, counter-clockwise seen from outside}, its `to_world` the identity."""
 
     kind: str
     to_world: list[list[float]]
     material: int
-    role: str  # wall | floor | ceiling | furniture | object | mirror | picture | lamp
+    role: str  # wall | floor | ceiling | furniture | object | mirror | picture | lamp | inserted
     emission: list[float] | None = None  # RGB radiance (W/m^2/sr) for lamps
+    mesh: dict | None = None
 
 
 @dataclass
@@ -74,7 +77,11 @@ class Room:
     cameras: list[Camera] = field(default_factory=list)
 
     def to_json(self) -> dict:
-        return asdict(self)
+        d = asdict(self)
+        for shape in d["shapes"]:  # only inserted objects are meshes: room files keep their primitives' keys
+            if shape["mesh"] is None:
+                del shape["mesh"]
+        return d
 
     @staticmethod
     def from_json(d: dict) -> Room:
