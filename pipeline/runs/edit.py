@@ -13,9 +13,9 @@ noise-free `oracle/psnr`; for objects, `ring_<row>/psnr` and `ring_<row>/psnr_su
 the object with and without differential rendering, `systems.ring_scoring`), `timings.json`,
 `insertion.png`, `editing.png` and `shadows.png` (figure grids), all also to MLflow.
 
-The out-of-distribution set's insertion cases (`ood.data_root`, rooms of another style never trained
-on) are scored by the rows `ood.rows` (no oracle): `ood/`-prefixed means and intervals in the same
-metrics, `ood_cases.csv`, `ood_insertion.png`.
+The out-of-distribution set's insertion cases (`ood.data_root`, its test split: rooms of another style
+never trained on) are scored by the rows `ood.rows` (no oracle), with the same networks: `ood/`-prefixed
+means and intervals in the same metrics, `ood_cases.csv`, `ood_insertion.png`.
 """
 
 from __future__ import annotations
@@ -39,6 +39,7 @@ from pipeline.systems.insertion_scoring import (
     stage_setup,
     summarise,
     view_context,
+    with_views,
 )
 from pipeline.systems.ring_scoring import RING_ROWS, summarise_ring
 from pipeline.tracking import publish, stage_run
@@ -104,8 +105,11 @@ def run(cfg: DictConfig) -> dict[str, float]:
     import mlflow
 
     report = Path(cfg.report_dir)
-    rows_ood = ood_rows(cfg)  # checked before the long scoring
+    rows_ood = ood_rows(cfg)
     shared = stage_setup(cfg)
+    if rows_ood:  # its data checked before the long scoring; its split is the only one it has
+        ood_cfg = OmegaConf.merge(cfg, {"data_root": cfg.ood.data_root, "split": "test"})
+        shared_ood = with_views(shared, cfg.ood.data_root, "test")
     t_start = time.perf_counter()
     with stage_run("edit", cfg, tags={"data_source": "synthetic", "split": str(cfg.split)}):
         main = score_set(shared, cfg, ROWS, "edit")
@@ -128,8 +132,7 @@ def run(cfg: DictConfig) -> dict[str, float]:
         timings = {f"seconds_per_case/{row}": s / len(records) for row, s in main["seconds"].items()}
         if rows_ood:
             t_ood = time.perf_counter()
-            ood_cfg = OmegaConf.merge(cfg, {"data_root": cfg.ood.data_root})
-            ood = score_set(stage_setup(ood_cfg), ood_cfg, rows_ood, "edit (ood)")
+            ood = score_set(shared_ood, ood_cfg, rows_ood, "edit (ood)")
             metrics.update({f"ood/{k}": v for k, v in ood["metrics"].items()})
             artifacts.append(write_cases_csv(ood["records"], report / "ood_cases.csv"))
             figure_rows = tuple(row for row in FIGURE_ROWS if row in rows_ood)

@@ -430,6 +430,15 @@ def stage_setup(cfg: DictConfig) -> dict:
     }
 
 
+def with_views(shared: dict, root: str | Path, split: str) -> dict:
+    """`shared` (`stage_setup`'s) for the cases of another dataset root's `split`, the networks, constant
+    lights and layers kept: its root, view list and `max_depth` replaced (refused, naming the root, when no
+    view of the split has cases)."""
+    root = Path(root)
+    views = case_io.case_views(root, split)
+    return {**shared, "root": root, "views": views, "max_depth": int(_dataset_record(root)["config"]["max_depth"])}
+
+
 def view_context(
     shared: dict, scene: str, view: str, cfg: DictConfig, oracle: bool = True
 ) -> tuple[dict, list[case_io.Case]]:

@@ -316,10 +316,12 @@ def shape_lines(m: dict, prefix: str = "") -> list[str]:
     ]
     for who in ("nearest_probe", "scaled_constant"):
         p = [f"{prefix}insert/{g}/lightnet_minus_{who}/psnr" for g in shapes]
-        if all(f"{k}_lo" in m for k in p):
-            rows.append(
-                [f"lightnet - {who}", *(f"{signed(m[f'{k}_diff'])} {interval(m[f'{k}_lo'], m[f'{k}_hi'])}" for k in p)]
-            )
+        cells = [
+            f"{signed(m[f'{k}_diff'])} {interval(m[f'{k}_lo'], m[f'{k}_hi'])}" if f"{k}_lo" in m else "n/a (one view)"
+            for k in p
+        ]
+        if any(f"{k}_diff" in m for k in p):
+            rows.append([f"lightnet - {who}", *cells])
     return lines + md_table(["row", *shapes], rows)
 
 

@@ -82,6 +82,24 @@ def test_stage_scores_every_row_with_paired_intervals(micro_root, micro_shards, 
     assert (report / "ood_insertion.png").is_file()
 
 
+def test_an_ood_root_without_cases_is_refused_before_scoring(micro_root, micro_shards, exports, tmp_path):
+    """`ood.data_root` is checked before the main set's long scoring: a root with no test view with cases
+    is refused naming it, and nothing is written."""
+    from pipeline.data.interiorverse import DatasetError
+    from pipeline.runs.edit import run
+
+    empty = tmp_path / "no_ood"
+    empty.mkdir()
+    cfg = _micro_edit_cfg(
+        micro_root, micro_shards, exports, f"report_dir={tmp_path / 'report'}", f"ood.data_root={empty}"
+    )
+    with pytest.raises(DatasetError, match="no_ood"):
+        run(cfg)
+    assert not (tmp_path / "report").exists()
+    with pytest.raises(ValueError, match="ood.rows"):
+        run(_micro_edit_cfg(micro_root, micro_shards, exports, "ood.rows=[nearest_probe]"))
+
+
 @pytest.mark.parametrize("shape", ["sphere", "vase"])
 def test_oracle_render_matches_mitsuba_within_its_noise(micro_root, mitsuba_variant, shape):
     """An object's pixels rendered by the MC layer under the oracle (Mitsuba's radiance for each sample
