@@ -301,6 +301,12 @@ def section_edit(reports: Path, facts: dict | None = None) -> list[str]:
 OBJECT_SHAPES = ("sphere", "vase", "snowman")  # the insertion cases' shapes (the vase a triangle mesh)
 
 
+def difference_cell(m: dict, key: str, missing: str) -> str:
+    """`<diff> [lo, hi]` of a paired difference published as `<key>_diff`, `_lo`, `_hi`, or `missing` where
+    it has no interval (cases from one view, or none)."""
+    return f"{signed(m[f'{key}_diff'])} {interval(m[f'{key}_lo'], m[f'{key}_hi'])}" if f"{key}_lo" in m else missing
+
+
 def shape_lines(m: dict, prefix: str = "") -> list[str]:
     """The insertion cases by the object's shape (`insert/<shape>`): each row's mean PSNR and LightNet minus
     the nearest probe and the scaled constant; [] when the metrics hold no shape group."""
@@ -316,10 +322,7 @@ def shape_lines(m: dict, prefix: str = "") -> list[str]:
     ]
     for who in ("nearest_probe", "scaled_constant"):
         p = [f"{prefix}insert/{g}/lightnet_minus_{who}/psnr" for g in shapes]
-        cells = [
-            f"{signed(m[f'{k}_diff'])} {interval(m[f'{k}_lo'], m[f'{k}_hi'])}" if f"{k}_lo" in m else "n/a (one view)"
-            for k in p
-        ]
+        cells = [difference_cell(m, k, "n/a (one view)") for k in p]
         if any(f"{k}_diff" in m for k in p):
             rows.append([f"lightnet - {who}", *cells])
     return lines + md_table(["row", *shapes], rows)
@@ -348,13 +351,7 @@ def ood_insertion_lines(reports: Path) -> list[str]:
     for g in INSERT_GROUPS:
         for who in rows_ood[1:]:
             key = f"insert/{g}/lightnet_minus_{who}/psnr"
-            cells = [
-                f"{signed(m[f'{p}{key}_diff'])} {interval(m[f'{p}{key}_lo'], m[f'{p}{key}_hi'])}"
-                if f"{p}{key}_lo" in m
-                else "n/a"
-                for p in ("", "ood/")
-            ]
-            diff_rows.append([g, who, *cells])
+            diff_rows.append([g, who, *(difference_cell(m, f"{p}{key}", "n/a") for p in ("", "ood/"))])
     lines += ["", "LightNet minus each other row, PSNR (dB), 95 % interval over views:", ""]
     lines += md_table(["objects", "against", "test", "out of distribution"], diff_rows)
     lines += shape_lines(m, "ood/")
