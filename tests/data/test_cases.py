@@ -224,3 +224,34 @@ def test_damaged_case_files_are_refused_naming_the_file(micro_root, tmp_path, da
     h, w = (H, W + 1) if damage == "wrong_size" else (H, W)
     with pytest.raises(DatasetError, match=f"{scene}/{view}_cases"):
         case_io.read_cases(tmp_path, scene, view, h, w)
+
+
+@pytest.mark.parametrize("damage", ["nan_vertex", "face_out_of_range", "flat_vertices", "no_faces", "float_faces"])
+def test_a_damaged_mesh_object_is_refused_naming_the_file_and_object(micro_root, tmp_path, damage):
+    """A mesh object's triangles in the case JSON: finite (V, 3) vertices and (F >= 1, 3) integer faces
+    that index them, or the read is refused naming the file and the object."""
+    scene, view, k = next(
+        (s, v, i)
+        for s, v in _views(micro_root)
+        for i, o in enumerate(json.loads(case_io.paths(micro_root, s, v)[0].read_text())["objects"])
+        if o["mesh"] is not None
+    )
+    shutil.copytree(micro_root / scene, tmp_path / scene)
+    js, _ = case_io.paths(tmp_path, scene, view)
+    desc = json.loads(js.read_text())
+    mesh = desc["objects"][k]["mesh"]
+    if damage == "nan_vertex":
+        mesh["vertices"][0][1] = float("nan")
+    elif damage == "face_out_of_range":
+        mesh["faces"][-1][2] = len(mesh["vertices"])
+    elif damage == "flat_vertices":
+        mesh["vertices"] = [x for v in mesh["vertices"] for x in v]
+    elif damage == "no_faces":
+        del mesh["faces"]
+    else:
+        mesh["faces"] = [[float(i) for i in f] for f in mesh["faces"]]
+    js.write_text(json.dumps(desc))
+    maps = iv.read_view(tmp_path, scene, view).maps
+    H, W = maps["im"].shape[:2]
+    with pytest.raises(DatasetError, match=rf"{view}_cases.json: objects\[{k}\].mesh"):
+        case_io.read_cases(tmp_path, scene, view, H, W)
